@@ -1,0 +1,26 @@
+"""tissuefit: differentiable Monte Carlo light transport in layered tissue (JAX).
+
+Importing tissuefit enables JAX's 64-bit mode: tallies are accumulated in float64 whatever the
+photon state's working precision (float32 by default), and float64 tracing is available on request.
+"""
+
+import jax as _jax
+
+_jax.config.update("jax_enable_x64", True)
+
+from .scene import (  # noqa: E402
+    AbstractSource as AbstractSource,
+    FlatBeam as FlatBeam,
+    LaunchList as LaunchList,
+    LayeredTissue as LayeredTissue,
+    PencilBeam as PencilBeam,
+    Scene as Scene,
+    paper_tissue as paper_tissue,
+)
+from .transport import (  # noqa: E402
+    TallySpec as TallySpec,
+    TraceOptions as TraceOptions,
+    TraceResult as TraceResult,
+    trace as trace,
+    trace_reference as trace_reference,
+)
