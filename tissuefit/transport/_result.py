@@ -23,7 +23,10 @@ class TraceResult(eqx.Module):
     - `a_layer` [-]: absorbed fraction per layer.
     Bookkeeping: `photons` launched, `steps` photon steps taken (hop/drop/spin or boundary),
     `budget_exhausted` True when `max_steps` stopped the run early (tallies then incomplete).
-    Path statistics (when `TraceOptions.path_stats`): see `PathStats`.
+    - `roulette` [-]: net weight created by Russian roulette per photon (zero-mean); exactly,
+      `rsp + rd + a + tt - roulette = 1` up to float64 rounding.
+    - `path_stats`: weighted path statistics of escaping photons when `TraceOptions.path_stats`
+      (see `PathStats`), which give the likelihood-ratio derivatives of rd and tt.
     """
 
     photons: int = eqx.field(static=True)
@@ -48,6 +51,9 @@ class TraceResult(eqx.Module):
     a_z: Float[Array, " nz"] | None = None
     a_rz: Float[Array, "nr nz"] | None = None
     a_layer: Float[Array, " layers"] | None = None
+    roulette: Float[Array, ""] | float = 0.0
+    roulette_stderr: Float[Array, ""] | float = 0.0
+    path_stats: "PathStats | None" = None
 
     @property
     def r_cm(self) -> np.ndarray:
@@ -63,3 +69,38 @@ class TraceResult(eqx.Module):
     def a_rad(self) -> np.ndarray:
         """Exit-angle bin centres [rad], (i + 1/2) da."""
         return (np.arange(self.tallies.na) + 0.5) * self.tallies.da
+
+
+class PathStats(eqx.Module):
+    """Weighted path statistics of escaping photons, per layer, normalised per launched photon.
+
+    `rd[0, l]` = sum over reflected photons of w * (path length in layer l) / N [cm];
+    `rd[1, l]` = sum of w * (interactions in layer l) / N; `rd[2, l]` = sum of
+    w * (sum over its scatterings in l of d log p_HG / dg) / N. `tt` likewise for transmitted photons.
+
+    For a recorded path the contribution is W = W0 (mus/mus0)^k exp(-(mut - mut0) L) prod p_g/p_g0
+    (DESIGN.md §5), so the perturbation Monte Carlo derivatives at the traced parameters are
+    d rd / d mua_l = -rd[0, l], d rd / d mus_l = rd[1, l]/mus_l - rd[0, l], d rd / d g_l = rd[2, l].
+    They are unbiased except for roulette's weight threshold, whose decision depends on parameters
+    (a negligible effect at MCML's 1e-4 threshold).
+    """
+
+    rd: Float[Array, "3 layers"]
+    tt: Float[Array, "3 layers"]
+    mus: Float[Array, " layers"]
+
+    def _grads(self, stats):
+        safe = np.where(self.mus > 0, self.mus, 1.0)
+        return {
+            "mua": -stats[0],
+            "mus": np.where(self.mus > 0, stats[1] / safe, 0.0) - stats[0],
+            "g": stats[2],
+        }
+
+    def rd_gradient(self) -> dict:
+        """d rd / d (mua, mus, g) per layer [cm, cm, -] from the likelihood ratio."""
+        return self._grads(self.rd)
+
+    def tt_gradient(self) -> dict:
+        """d tt / d (mua, mus, g) per layer [cm, cm, -] from the likelihood ratio."""
+        return self._grads(self.tt)

@@ -1,0 +1,188 @@
+"""Command line: `tissuefit simulate SCENE`, `tissuefit check SCENE`, `tissuefit --version`.
+
+Thin by design: parse arguments → read and validate the scene file (tissuefit.io) → call
+`tissuefit.trace` → print and write. Invalid input exits with status 2 and a one-paragraph
+message on stderr, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.metadata
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+from . import io
+from ._checks import check_positive_int
+from .transport import trace
+
+DEFAULT_SEED = 0
+"""Seed used when neither the command line nor the scene file gives one (echoed in every output)."""
+
+EXIT_INVALID = 2
+_MAX_SEED = 2**63 - 1
+
+
+class _InvalidInput(Exception):
+    """Bad input found by the CLI; the message goes to stderr and the exit status is 2."""
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("tissuefit")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - source tree without install
+        return "unknown"
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tissuefit",
+        description="Monte Carlo light transport in layered tissue (MCML physics, JAX).",
+    )
+    parser.add_argument("--version", action="version", version=f"tissuefit {_version()}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    sim = commands.add_parser(
+        "simulate", help="run the simulation(s) a scene file describes",
+        description="Run every simulation in SCENE (.toml scene or .mci MCML input) and report the tallies.",
+    )
+    sim.add_argument("scene", metavar="SCENE", help="scene file: .toml (data_spec/scene.md) or .mci (MCML input)")
+    sim.add_argument("--photons", type=int, metavar="N", help="photon packets per run (overrides the file)")
+    sim.add_argument("--seed", type=int, metavar="S",
+                     help=f"PRNG seed (overrides the file; default {DEFAULT_SEED} when the file has none)")
+    sim.add_argument("--precision", choices=("float32", "float64"), help="working precision of the photon state")
+    sim.add_argument("--lanes", type=int, metavar="L", help="photons in flight at once")
+    sim.add_argument("--halton", action="store_true", help="quasi-random (Halton) launch sampling")
+    sim.add_argument("--out", metavar="PATH", type=Path,
+                     help="folder for <name>.json per run (and, for .mci input, the .mco file it names)")
+    sim.add_argument("--json", action="store_true", help="print JSON (one object, or a list for several runs)")
+
+    check = commands.add_parser("check", help="validate a scene file without running it",
+                                description="Validate SCENE (.toml or .mci) and report the number of runs.")
+    check.add_argument("scene", metavar="SCENE", help="scene file: .toml or .mci")
+    return parser
+
+
+def _load(path: str) -> list[io.Run]:
+    try:
+        return io.load_runs(path)
+    except FileNotFoundError:
+        raise _InvalidInput(f"{path}: no such file") from None
+    except OSError as err:
+        raise _InvalidInput(f"{path}: cannot read: {err.strerror or err}") from None
+    except ValueError as err:
+        raise _InvalidInput(str(err)) from None
+
+
+def _resolve(run: io.Run, args: argparse.Namespace) -> io.Run:
+    """Apply command-line overrides and the default seed; re-check what changed."""
+    seed = args.seed if args.seed is not None else run.seed
+    changes: dict = {"seed": DEFAULT_SEED if seed is None else seed}
+    if not 0 <= changes["seed"] <= _MAX_SEED:
+        raise _InvalidInput(f"--seed = {changes['seed']} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    if args.photons is not None:
+        changes["photons"] = args.photons
+    option_changes = {}
+    if args.precision is not None:
+        option_changes["precision"] = args.precision
+    if args.lanes is not None:
+        option_changes["lanes"] = args.lanes
+    if args.halton:
+        option_changes["launch"] = "halton"
+    try:
+        if args.photons is not None:
+            check_positive_int("--photons", args.photons, high=io.MAX_PHOTONS)
+        if args.lanes is not None:
+            check_positive_int("--lanes", args.lanes)
+        if option_changes:
+            changes["options"] = dataclasses.replace(run.options, **option_changes)
+        return dataclasses.replace(run, **changes)
+    except (ValueError, TypeError) as err:
+        raise _InvalidInput(str(err)) from None
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "run"
+
+
+def _summary(record: dict) -> str:
+    def pm(key):
+        err = record.get(f"{key}_stderr")
+        return f"{record[key]:.6g}" + (f" ± {err:.2g}" if err is not None else "")
+
+    rate = record["photons_per_second"]
+    lines = [
+        f"{record['name']} ({record['source_file']}): {record['photons']} photons in {record['seconds']:.3g} s"
+        + (f" ({rate:,.0f} photons/s)" if rate else "") + f", seed {record['seed']}",
+        f"  rsp = {pm('rsp')}   specular reflectance",
+        f"  rd  = {pm('rd')}   diffuse reflectance",
+        f"  a   = {pm('a')}   absorbed fraction",
+        f"  tt  = {pm('tt')}   transmittance",
+    ]
+    if record.get("budget_exhausted"):
+        lines.append("  WARNING: step budget exhausted; tallies are incomplete")
+    return "\n".join(lines)
+
+
+def _progress(runs):
+    """Per-run progress across runs on stderr (shown for several runs on a terminal).
+
+    Note: `trace` has no progress callback yet, so a single long run shows no bar.
+    """
+    from tqdm import tqdm
+
+    return tqdm(runs, desc="runs", unit="run", file=sys.stderr, disable=None if len(runs) > 1 else True)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    runs = [_resolve(run, args) for run in _load(args.scene)]
+    names: dict[str, int] = {}
+    records = []
+    for run in _progress(runs):
+        start = time.perf_counter()
+        result = trace(run.scene, key=jax.random.key(run.seed), photons=run.photons,
+                       tallies=run.tallies, options=run.options)
+        result = jax.block_until_ready(result)
+        seconds = time.perf_counter() - start
+        record = io.result_to_dict(run, result, seed=run.seed, seconds=seconds)
+        records.append(record)
+        if args.out is not None:
+            args.out.mkdir(parents=True, exist_ok=True)
+            stem = _safe_name(run.name)
+            names[stem] = names.get(stem, 0) + 1
+            if names[stem] > 1:
+                stem = f"{stem}_{names[stem]}"
+            io.write_json(args.out / f"{stem}.json", record)
+            if run.mco_output is not None:
+                io.write_mco(args.out / Path(run.mco_output).name, run, result, seed=run.seed, seconds=seconds)
+        if not args.json:
+            print(_summary(record), flush=True)
+    if args.json:
+        print(json.dumps(records[0] if len(records) == 1 else records, indent=2, allow_nan=False))
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    runs = _load(args.scene)
+    print(f"ok: {len(runs)} run(s)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `tissuefit` command; returns the exit status (2 for invalid input)."""
+    args = _parser().parse_args(argv)
+    try:
+        return _simulate(args) if args.command == "simulate" else _check(args)
+    except _InvalidInput as err:
+        print(f"tissuefit: error: {err}", file=sys.stderr)
+        return EXIT_INVALID
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,18 @@
+"""Files: scene files (TOML, data_spec/scene.md), MCML's .mci input and .mco output, JSON records.
+
+This is the only package that reads or writes files. Every reader validates before anything runs
+and names the file, the line or field, the value, the unit and the allowed range when it refuses.
+"""
+
+from ._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
+from ._mci import read_mci as read_mci
+from ._mco import read_mco as read_mco, write_mco as write_mco
+from ._report import result_to_dict as result_to_dict, write_json as write_json
+from ._run import MAX_PHOTONS as MAX_PHOTONS, Run as Run
+from ._scenefile import (
+    load_runs as load_runs,
+    read_scene as read_scene,
+    scene_from_dict as scene_from_dict,
+    scene_schema as scene_schema,
+    scene_to_dict as scene_to_dict,
+)

@@ -1,0 +1,50 @@
+"""A run: one simulation a file asks for (scene, photon count, tallies, options, seed)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+
+from .._checks import check_positive_int
+from ..scene import Scene
+from ..transport import TallySpec, TraceOptions
+
+
+MAX_PHOTONS = 2**32 - 1
+"""Largest photon count a run may ask for (photon indices are 32-bit)."""
+
+
+class Run(eqx.Module):
+    """One simulation read from a scene file (`.toml`) or one run of an MCML input file (`.mci`).
+
+    Fields:
+    - `name`: label used for output files (`<name>.json`).
+    - `scene`: the tissue and the source.
+    - `photons`: number of photon packets to launch, 1 .. `MAX_PHOTONS`.
+    - `tallies`, `options`: what to tally and how to trace (static trace config).
+    - `seed`: PRNG seed, or None when the file gives none (the CLI then uses a fixed default).
+    - `source_file`: the file the run was read from.
+    - `mco_output`: the output file name an `.mci` run names (None for `.toml` scenes).
+    - `mco_format`: MCML's output format letter for that file, "A" (ASCII) or "B"; None for `.toml`.
+
+    A Run is plain data for files and the CLI; the simulator only sees `scene`, `tallies` and
+    `options`. Use `dataclasses.replace(run, photons=...)` to override a field.
+    """
+
+    name: str = eqx.field(static=True)
+    scene: Scene
+    photons: int = eqx.field(static=True)
+    tallies: TallySpec = eqx.field(static=True, default_factory=TallySpec)
+    options: TraceOptions = eqx.field(static=True, default_factory=TraceOptions)
+    seed: int | None = eqx.field(static=True, default=None)
+    source_file: str = eqx.field(static=True, default="<memory>")
+    mco_output: str | None = eqx.field(static=True, default=None)
+    mco_format: Literal["A", "B"] | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        check_positive_int("run.photons", self.photons, high=MAX_PHOTONS)
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)):
+            raise TypeError(f"run.seed = {self.seed!r} must be an integer or None")
+        if self.mco_format not in (None, "A", "B"):
+            raise ValueError(f"mco_format = {self.mco_format!r}; allowed 'A', 'B' or None")
