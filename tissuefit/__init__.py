@@ -6,14 +6,18 @@ photon state's working precision (float32 by default), and float64 tracing is av
 
 import os as _os
 
-# One XLA CPU device per core, so photon batches are sharded over all cores (DESIGN.md §10). This
-# only takes effect if JAX has not initialised its CPU backend yet, and never overrides a user's flag.
-if "xla_force_host_platform_device_count" not in _os.environ.get("XLA_FLAGS", ""):
-    _os.environ["XLA_FLAGS"] = (
-        _os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={_os.cpu_count() or 1}"
-    ).strip()
+import jax as _jax
 
-import jax as _jax  # noqa: E402
+# One XLA CPU device per core, so photon ranges are sharded over all cores (DESIGN.md §10): XLA's
+# own intra-op threading of the step loop is erratic, one device per core is not. This only takes
+# effect when JAX's backends are not initialised yet, and never overrides a user's own setting.
+if _jax.config.jax_num_cpu_devices == -1 and "xla_force_host_platform_device_count" not in _os.environ.get(
+    "XLA_FLAGS", ""
+):
+    try:
+        _jax.config.update("jax_num_cpu_devices", len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1))
+    except RuntimeError:  # backends already initialised by the caller: keep what they have
+        pass
 
 _jax.config.update("jax_enable_x64", True)
 

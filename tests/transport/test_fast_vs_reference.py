@@ -26,7 +26,7 @@ def _scenes():
 def test_fast_tracer_matches_reference(name):
     scene = _scenes()[name]
     photons_ref = 4000
-    ref = tf.trace_reference(scene, photons=photons_ref, seed=7, tallies=TALLIES, options=tf.TraceOptions(batches=20))
+    ref = tf.trace_reference(scene, photons=photons_ref, seed=7, tallies=TALLIES, batches=20)
     fast = tf.trace(scene, key=jax.random.key(7), photons=200_000, tallies=TALLIES, options=tf.TraceOptions(lanes=4096))
     assert fast.rsp == pytest.approx(float(ref.rsp), rel=1e-6)
     for q in ("rd", "a", "tt"):

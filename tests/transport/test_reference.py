@@ -18,6 +18,7 @@ import pytest
 
 from tissuefit import LayeredTissue, PencilBeam, Scene, TallySpec, TraceOptions, trace_reference
 from tissuefit.transport import _reference as ref
+from tissuefit.transport._result import bin_measures
 
 K = 3.0
 """Tolerance in standard errors."""
@@ -194,14 +195,14 @@ def test_resolved_tallies_add_up_to_the_totals():
     spec = TallySpec(names=names, dr=0.01, nr=12, dz=0.01, nz=15, na=9)  # overflow bins in use
     result = trace_reference(multilayer_scene(), photons=1000, seed=9, tallies=spec)
     ring = 2 * math.pi * (np.arange(spec.nr) + 0.5) * spec.dr**2
-    solid = 2 * math.pi * np.sin((np.arange(spec.na) + 0.5) * spec.da) * spec.da
+    _, solid, projected = bin_measures(spec)
     rd, tt, a = float(result.rd), float(result.tt), float(result.a)
     assert float(np.sum(np.asarray(result.rd_r) * ring)) == pytest.approx(rd, rel=1e-12)
     assert float(np.sum(np.asarray(result.rd_a) * solid)) == pytest.approx(rd, rel=1e-12)
-    assert float(np.sum(np.asarray(result.rd_ra) * np.outer(ring, solid))) == pytest.approx(rd, rel=1e-12)
+    assert float(np.sum(np.asarray(result.rd_ra) * np.outer(ring, projected))) == pytest.approx(rd, rel=1e-12)
     assert float(np.sum(np.asarray(result.tt_r) * ring)) == pytest.approx(tt, rel=1e-12)
     assert float(np.sum(np.asarray(result.tt_a) * solid)) == pytest.approx(tt, rel=1e-12)
-    assert float(np.sum(np.asarray(result.tt_ra) * np.outer(ring, solid))) == pytest.approx(tt, rel=1e-12)
+    assert float(np.sum(np.asarray(result.tt_ra) * np.outer(ring, projected))) == pytest.approx(tt, rel=1e-12)
     assert float(np.sum(np.asarray(result.a_z) * spec.dz)) == pytest.approx(a, rel=1e-12)
     assert float(np.sum(np.asarray(result.a_rz) * ring[:, None] * spec.dz)) == pytest.approx(a, rel=1e-12)
     assert float(np.sum(np.asarray(result.a_layer))) == pytest.approx(a, rel=1e-12)

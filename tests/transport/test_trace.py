@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import tissuefit as tf
+from tissuefit.transport._result import bin_measures
 
 from ._scenes import GIOVANELLI, VAN_DE_HULST, giovanelli, three_layer, van_de_hulst
 
@@ -92,14 +93,13 @@ def test_energy_bookkeeping_float64():
     assert abs(r.roulette) <= K * r.roulette_stderr + 1e-12
     # The resolved tallies sum to the totals.
     t = ALL
-    ring = 2 * np.pi * (np.arange(t.nr) + 0.5) * t.dr**2
-    solid = 2 * np.pi * np.sin((np.arange(t.na) + 0.5) * t.da) * t.da
+    ring, solid, projected = bin_measures(t)
     assert np.sum(r.rd_r * ring) == pytest.approx(r.rd, rel=1e-9)
     assert np.sum(r.rd_a * solid) == pytest.approx(r.rd, rel=1e-9)
-    assert np.sum(r.rd_ra * ring[:, None] * solid[None, :]) == pytest.approx(r.rd, rel=1e-9)
+    assert np.sum(r.rd_ra * ring[:, None] * projected[None, :]) == pytest.approx(r.rd, rel=1e-9)
     assert np.sum(r.tt_r * ring) == pytest.approx(r.tt, rel=1e-9)
     assert np.sum(r.tt_a * solid) == pytest.approx(r.tt, rel=1e-9)
-    assert np.sum(r.tt_ra * ring[:, None] * solid[None, :]) == pytest.approx(r.tt, rel=1e-9)
+    assert np.sum(r.tt_ra * ring[:, None] * projected[None, :]) == pytest.approx(r.tt, rel=1e-9)
     assert np.sum(r.a_layer) == pytest.approx(r.a, rel=1e-9)
     assert r.a_layer[0] == 0.0  # glass absorbs nothing
     assert np.sum(r.a_z) * t.dz == pytest.approx(r.a, rel=1e-9)

@@ -28,17 +28,20 @@ from ._mci import read_mci
 from ._run import Run
 
 FORMAT = "tissuefit-scene/1"
-_OPTION_KEYS = ("precision", "launch", "lanes", "batches", "roulette_threshold", "roulette_chance",
+_OPTION_KEYS = ("precision", "launch", "lanes", "roulette_threshold", "roulette_chance",
                 "steps_per_refill", "max_steps", "path_stats")
 _TALLY_KEYS = ("dz", "dr", "nz", "nr", "na")
 _BEAM_KEYS = ("x", "y", "polar_deg", "azimuth_deg")
 
 
 @functools.cache
+def _schema_text() -> str:
+    return importlib.resources.files(__package__).joinpath("scene.schema.json").read_text(encoding="utf-8")
+
+
 def scene_schema() -> dict:
-    """The JSON Schema of the scene format (the package's `scene.schema.json`)."""
-    text = importlib.resources.files(__package__).joinpath("scene.schema.json").read_text(encoding="utf-8")
-    return json.loads(text)
+    """The JSON Schema of the scene format (a fresh copy of the package's `scene.schema.json`)."""
+    return json.loads(_schema_text())
 
 
 def _finite_type(validator, types, instance, schema):
@@ -213,7 +216,7 @@ def scene_from_dict(doc: dict, *, source_file: str = "<dict>", default_name: str
 
 def _int_if(key: str, value):
     """TOML `1e5` is a float; the schema accepted it as an integer, so pass an int on."""
-    integers = {"nz", "nr", "na", "lanes", "batches", "steps_per_refill", "max_steps"}
+    integers = {"nz", "nr", "na", "lanes", "steps_per_refill", "max_steps"}
     return int(value) if key in integers else value
 
 

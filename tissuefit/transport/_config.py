@@ -56,22 +56,22 @@ class TraceOptions(eqx.Module):
 
     - `lanes`: photons in flight at once; memory is O(lanes), whatever the photon count.
     - `precision`: working precision of the photon state. Tallies are always float64.
+      Standard errors come from per-photon first and second moments (batch means with batches of
+      one photon, the most efficient choice for independent photons; conservative for Halton).
     - `launch`: "random" or "halton" (the paper's quasi-random launch sampling).
     - `roulette_threshold`, `roulette_chance`: Russian roulette (MCML: 1e-4 and 0.1).
-    - `batches`: number of batches for batch-means standard errors.
     - `steps_per_refill`: photon steps between lane refills; a dead lane idles at most this many.
     - `max_steps`: budget of loop iterations (steps_per_refill each); None for unlimited.
     - `path_stats`: record per-photon path statistics (per-layer path length, scattering count,
       Henyey–Greenstein score) for likelihood-ratio gradients.
     """
 
-    lanes: int = eqx.field(static=True, default=8192)
+    lanes: int = eqx.field(static=True, default=16384)
     precision: Literal["float32", "float64"] = eqx.field(static=True, default="float32")
     launch: Literal["random", "halton"] = eqx.field(static=True, default="random")
     roulette_threshold: float = eqx.field(static=True, default=1e-4)
     roulette_chance: float = eqx.field(static=True, default=0.1)
-    batches: int = eqx.field(static=True, default=32)
-    steps_per_refill: int = eqx.field(static=True, default=4)
+    steps_per_refill: int = eqx.field(static=True, default=8)
     max_steps: int | None = eqx.field(static=True, default=None)
     path_stats: bool = eqx.field(static=True, default=False)
 
@@ -83,7 +83,6 @@ class TraceOptions(eqx.Module):
             raise ValueError(f"options.launch = {self.launch!r}; allowed 'random' or 'halton'")
         check_range("options.roulette_threshold", self.roulette_threshold, unit="-", low=0.0, high=1.0, low_open=True, high_open=True)
         check_range("options.roulette_chance", self.roulette_chance, unit="-", low=0.0, high=1.0, low_open=True)
-        check_positive_int("options.batches", self.batches)
         check_positive_int("options.steps_per_refill", self.steps_per_refill)
         if self.max_steps is not None:
             check_positive_int("options.max_steps", self.max_steps)

@@ -28,7 +28,7 @@ import numpy as np
 from .._checks import check_positive_int
 from ..scene import LayeredTissue, Scene
 from ._config import TallySpec, TraceOptions
-from ._result import TraceResult
+from ._result import TraceResult, bin_measures
 
 COS_ZERO = 1.0 - 1e-12
 """MCML's COSZERO: a cosine above this is treated as exactly normal (no division by sin)."""
@@ -218,9 +218,8 @@ class _Tallies:
     def finish(self, photons: int, batch_sizes: np.ndarray) -> dict:
         """Normalise as MCML does and compute batch-means standard errors."""
         spec = self.spec
-        dr, dz, da = spec.dr, spec.dz, spec.da
-        ring_area = 2.0 * math.pi * (np.arange(spec.nr) + 0.5) * dr * dr  # [cm^2]
-        solid_angle = 2.0 * math.pi * np.sin((np.arange(spec.na) + 0.5) * da) * da  # [sr]
+        dz = spec.dz
+        ring_area, solid_angle, projected = bin_measures(spec)  # [cm^2], [sr], [sr]
 
         def total(per_batch) -> float:
             return float(np.sum(per_batch)) / photons
@@ -250,13 +249,13 @@ class _Tallies:
         if self.rd_a is not None:
             out["rd_a"] = np.asarray(self.rd_a) / (photons * solid_angle)
         if self.rd_ra is not None:
-            out["rd_ra"] = self.rd_ra / (photons * ring_area[:, None] * solid_angle[None, :])
+            out["rd_ra"] = self.rd_ra / (photons * ring_area[:, None] * projected[None, :])
         if self.tt_r is not None:
             out["tt_r"] = np.asarray(self.tt_r) / (photons * ring_area)
         if self.tt_a is not None:
             out["tt_a"] = np.asarray(self.tt_a) / (photons * solid_angle)
         if self.tt_ra is not None:
-            out["tt_ra"] = self.tt_ra / (photons * ring_area[:, None] * solid_angle[None, :])
+            out["tt_ra"] = self.tt_ra / (photons * ring_area[:, None] * projected[None, :])
         if self.a_z is not None:
             out["a_z"] = np.asarray(self.a_z) / (photons * dz)
         if self.a_rz is not None:
@@ -498,6 +497,7 @@ def trace_reference(
     seed: int,
     tallies: TallySpec = TallySpec(),
     options: TraceOptions = TraceOptions(),
+    batches: int = 32,
 ) -> TraceResult:
     """Trace `photons` photons one at a time with MCML's rules (slow; the test oracle).
 
@@ -506,7 +506,9 @@ def trace_reference(
     - `photons`: number of photons launched, >= 1.
     - `seed`: integer seed of `numpy.random.default_rng`.
     - `tallies`: which resolved tallies to fill (others are None) and their grid (cm, rad).
-    - `options`: roulette threshold and chance, number of batches for standard errors and the launch
+    - `batches`: number of batches for the batch-means standard errors (an estimator independent of
+      the fast tracer's per-photon moments).
+    - `options`: roulette threshold and chance and the launch
       sampling ("random" or "halton": Halton bases 2 and 3 at index i + 1). Lanes, precision and
       step budgets do not apply: the reference always works in float64, one photon at a time.
 
@@ -524,7 +526,7 @@ def trace_reference(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise TypeError(f"seed = {seed!r} must be an integer")
     layers = _Layers(scene.tissue)
-    batches = min(options.batches, photons)
+    batches = min(check_positive_int("batches", batches), photons)
     rng = np.random.default_rng(seed)
     rand = _Uniforms(rng)
     xy, d = _launch_points(scene, photons, rng, options)

@@ -9,6 +9,22 @@ from jaxtyping import Array, Float
 from ._config import TallySpec, TraceOptions
 
 
+def bin_measures(tallies: TallySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bin sizes that turn weight sums into MCML's densities (Wang & Jacques 1992, MCML manual).
+
+    Returns (ring, solid, projected):
+    - `ring` [cm^2]: 2 pi (i + 1/2) dr^2, the area of radial bin i (for rd_r, tt_r, a_rz);
+    - `solid` [sr]: 2 pi sin(a_j) da, the solid angle of exit-angle bin j (for rd_a, tt_a);
+    - `projected` [sr]: 2 pi sin(a_j) cos(a_j) da, the projected solid angle (for rd_ra, tt_ra,
+      which are radiances per unit area as in MCML's distributed sample output),
+    with a_j = (j + 1/2) da.
+    """
+    ring = 2.0 * np.pi * (np.arange(tallies.nr) + 0.5) * tallies.dr**2
+    a = (np.arange(tallies.na) + 0.5) * tallies.da
+    solid = 2.0 * np.pi * np.sin(a) * tallies.da
+    return ring, solid, solid * np.cos(a)
+
+
 class TraceResult(eqx.Module):
     """Tallies of one run, normalised per launched photon as MCML does.
 
@@ -18,7 +34,8 @@ class TraceResult(eqx.Module):
     - `rd_stderr`, `a_stderr`, `tt_stderr`: standard errors from batch means.
     Present when requested in `TallySpec.names`, otherwise None (units as in MCML's .mco):
     - `rd_r` [1/cm^2], `rd_r_stderr` [1/cm^2]: diffuse reflectance per unit area vs radius.
-    - `rd_a` [1/sr], `rd_ra` [1/(cm^2 sr)]; `tt_r` [1/cm^2], `tt_a` [1/sr], `tt_ra` [1/(cm^2 sr)].
+    - `rd_a` [1/sr], `rd_ra` [1/(cm^2 sr)]; `tt_r` [1/cm^2], `tt_a` [1/sr], `tt_ra` [1/(cm^2 sr)]
+      (bin sizes: `bin_measures`).
     - `a_z` [1/cm], `a_rz` [1/cm^3]: absorbed power density; fluence = a_rz / mua [1/cm^2].
     - `a_layer` [-]: absorbed fraction per layer.
     Bookkeeping: `photons` launched, `steps` photon steps taken (hop/drop/spin or boundary),
