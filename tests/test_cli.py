@@ -27,8 +27,10 @@ class FakeTrace:
     def __init__(self):
         self.calls = []
 
-    def __call__(self, scene, *, key, photons, tallies, options):
-        self.calls.append(dict(scene=scene, key=key, photons=photons, tallies=tallies, options=options))
+    def __call__(self, scene, *, key, photons, tallies, options, chunks=1, progress=None):
+        self.calls.append(dict(scene=scene, key=key, photons=photons, tallies=tallies, options=options, chunks=chunks))
+        if progress is not None:
+            progress(photons)
         sizes = {"nr": tallies.nr, "nz": tallies.nz, "na": tallies.na}
         shapes = {"rd_r": ("nr",), "tt_r": ("nr",), "rd_a": ("na",), "tt_a": ("na",), "a_z": ("nz",),
                   "rd_ra": ("nr", "na"), "tt_ra": ("nr", "na"), "a_rz": ("nr", "nz")}
@@ -175,3 +177,9 @@ def test_argparse_errors_exit_2(capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(["simulate"])
     assert info.value.code == 2
+
+
+def test_long_runs_are_chunked_for_the_progress_bar(fake, capsys):
+    assert cli.main(["simulate", PAPER, "--photons", str(5 * cli.PHOTONS_PER_CHUNK), "--json"]) == 0
+    (call,) = fake.calls
+    assert call["chunks"] == 5
