@@ -13,7 +13,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/tissuefit simulate data_spec/examples/paper_tissue.toml --out out/demo
+	$(BIN)/tissuefit simulate data_spec/examples/paper_tissue.toml --photons 2000000 --out out/demo --plot
+	@echo "wrote out/demo/paper_tissue.json and out/demo/paper_tissue.png"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

@@ -152,6 +152,12 @@ def test_simulate_out_toml_writes_json_only(fake, tmp_path, capsys):
     assert [p.name for p in tmp_path.iterdir()] == ["paper_tissue.json"]
 
 
+def test_simulate_plot_writes_png(fake, tmp_path, capsys):
+    assert cli.main(["simulate", PAPER, "--out", str(tmp_path), "--plot"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper_tissue.json", "paper_tissue.png"]
+    assert (tmp_path / "paper_tissue.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 @pytest.mark.parametrize(
     "extra, expected",
     [(["--photons", "0"], "--photons = 0 is out of range; allowed [1, 4294967295]"),

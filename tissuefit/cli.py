@@ -62,6 +62,8 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", metavar="PATH", type=Path,
                      help="folder for <name>.json per run (and, for .mci input, the .mco file it names)")
     sim.add_argument("--json", action="store_true", help="print JSON (one object, or a list for several runs)")
+    sim.add_argument("--plot", action="store_true",
+                     help="with --out: also write <name>.png with the Rd(r), A(z) and Tt(r) profiles")
 
     check = commands.add_parser("check", help="validate a scene file without running it",
                                 description="Validate SCENE (.toml or .mci) and report the number of runs.")
@@ -168,6 +170,8 @@ def _simulate(args: argparse.Namespace) -> int:
             if names[stem] > 1:
                 stem = f"{stem}_{names[stem]}"
             io.write_json(args.out / f"{stem}.json", record)
+            if args.plot:
+                io.write_profile_plot(args.out / f"{stem}.png", record)
             if run.mco_output is not None:
                 io.write_mco(args.out / Path(run.mco_output).name, run, result, seed=run.seed, seconds=seconds)
         if not args.json:

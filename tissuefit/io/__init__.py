@@ -8,6 +8,7 @@ from ._atomic import atomic_writer as atomic_writer, write_text_atomic as write_
 from ._mci import read_mci as read_mci
 from ._mco import read_mco as read_mco, write_mco as write_mco
 from ._report import result_to_dict as result_to_dict, write_json as write_json
+from ._plot import write_profile_plot as write_profile_plot
 from ._run import MAX_PHOTONS as MAX_PHOTONS, Run as Run
 from ._scenefile import (
     load_runs as load_runs,

@@ -11,8 +11,9 @@ from typing import IO
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike) -> Iterator[IO[str]]:
-    """Open a temporary text file beside `path`; on success move it over `path` with `os.replace`.
+def atomic_writer(path: str | os.PathLike, *, binary: bool = False) -> Iterator[IO]:
+    """Open a temporary file beside `path` (text, or bytes when `binary`); on success move it over
+    `path` with `os.replace`.
 
     If the body raises, the temporary file is removed and `path` is left as it was. The temporary
     file lives in the same folder so the final rename never crosses a file system. It is created
@@ -22,7 +23,8 @@ def atomic_writer(path: str | os.PathLike) -> Iterator[IO[str]]:
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as handle:
+        mode = {"mode": "wb"} if binary else {"mode": "w", "encoding": "utf-8", "newline": "\n"}
+        with os.fdopen(fd, **mode) as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())

@@ -59,7 +59,7 @@ def format_mco(run: Run, result: TraceResult, *, seed: int, seconds: float) -> s
     put(f"# User time: {seconds:8.0f} sec = {seconds / 3600:8.2f} hr.   Simulation time of this run.\n")
     put(f"# Written by tissuefit {tissuefit_version()}: run {run.name!r} from {run.source_file}, seed {seed}, "
         f"{seconds:.3f} s wall time (compilation included).\n")
-    put(f"# Standard errors (batch means): Rd {float(result.rd_stderr):.6G}, "
+    put(f"# Standard errors: Rd {float(result.rd_stderr):.6G}, "
         f"A {float(result.a_stderr):.6G}, Tt {float(result.tt_stderr):.6G}.\n")
     if not _is_mcml_beam(run.scene.source):
         put(f"# Source: {type(run.scene.source).__name__} (not MCML's normal pencil beam).\n")

@@ -39,7 +39,7 @@ def tissuefit_version() -> str:
 
 
 def _json_number(value):
-    """A float for JSON; NaN and inf (e.g. a standard error from too few batches) become null."""
+    """A float for JSON; NaN and inf become null."""
     value = float(value)
     return value if math.isfinite(value) else None
 
