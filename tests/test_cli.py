@@ -27,7 +27,7 @@ class FakeTrace:
     def __init__(self):
         self.calls = []
 
-    def __call__(self, scene, *, key, photons, tallies, options, chunks=1, progress=None):
+    def __call__(self, scene, *, key, photons, tallies, options, chunks=1, progress=None, resume=None, on_chunk=None):
         self.calls.append(dict(scene=scene, key=key, photons=photons, tallies=tallies, options=options, chunks=chunks))
         if progress is not None:
             progress(photons)

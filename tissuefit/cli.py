@@ -62,6 +62,9 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", metavar="PATH", type=Path,
                      help="folder for <name>.json per run (and, for .mci input, the .mco file it names)")
     sim.add_argument("--json", action="store_true", help="print JSON (one object, or a list for several runs)")
+    sim.add_argument("--checkpoint", metavar="DIR", type=Path,
+                     help="save <name>.state.npz in DIR after every chunk of a long run and resume from it "
+                          "if present (the resumed result equals an uninterrupted run); removed on success")
     sim.add_argument("--plot", action="store_true",
                      help="with --out: also write <name>.png with the Rd(r), A(z) and Tt(r) profiles")
 
@@ -137,19 +140,34 @@ PHOTONS_PER_CHUNK = 1_000_000
 each at the measured ~500k photons/s on 2 cores); results do not depend on the chunking."""
 
 
-def _trace_with_progress(run: io.Run, label: str):
+def _trace_with_progress(run: io.Run, label: str, checkpoint: Path | None = None):
     """`trace` with a photon progress bar on stderr for runs of several chunks (tqdm hides it when
-    stderr is not a terminal)."""
+    stderr is not a terminal), checkpointed to `checkpoint` after every chunk when given."""
     from tqdm import tqdm
 
     chunks = int(min(100, max(1, run.photons // PHOTONS_PER_CHUNK)))
+    resume = None
+    if checkpoint is not None and checkpoint.exists():
+        try:
+            resume = io.load_trace_state(checkpoint)
+        except ValueError as err:
+            raise _InvalidInput(str(err)) from None
+    save = None if checkpoint is None else (lambda state: io.save_trace_state(checkpoint, state))
     with tqdm(total=run.photons, desc=label, unit="photon", unit_scale=True, file=sys.stderr,
               disable=None if chunks > 1 else True, leave=False) as bar:
         def progress(done: int) -> None:
             bar.update(done - bar.n)
 
-        return trace(run.scene, key=jax.random.key(run.seed), photons=run.photons,
-                     tallies=run.tallies, options=run.options, chunks=chunks, progress=progress)
+        try:
+            result = trace(run.scene, key=jax.random.key(run.seed), photons=run.photons, tallies=run.tallies,
+                           options=run.options, chunks=chunks, progress=progress, resume=resume, on_chunk=save)
+        except ValueError as err:
+            if resume is None:
+                raise
+            raise _InvalidInput(f"{checkpoint}: {err}") from None
+    if checkpoint is not None:
+        checkpoint.unlink(missing_ok=True)
+    return result
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -158,7 +176,11 @@ def _simulate(args: argparse.Namespace) -> int:
     records = []
     for run in runs:
         start = time.perf_counter()
-        result = _trace_with_progress(run, run.name)
+        checkpoint = None
+        if args.checkpoint is not None:
+            args.checkpoint.mkdir(parents=True, exist_ok=True)
+            checkpoint = args.checkpoint / f"{_safe_name(run.name)}.state.npz"
+        result = _trace_with_progress(run, run.name, checkpoint)
         result = jax.block_until_ready(result)
         seconds = time.perf_counter() - start
         record = io.result_to_dict(run, result, seed=run.seed, seconds=seconds)

@@ -161,3 +161,14 @@ def test_path_stats_give_beer_lambert_derivative():
     r = run(scene, 1000, options=tf.TraceOptions(lanes=512, precision="float64", path_stats=True))
     # Every transmitted photon has path length d: d tt / d mua = -d tt.
     assert r.path_stats.tt_gradient()["mua"][0] == pytest.approx(-d * r.tt, rel=1e-12)
+
+
+def test_fluence_is_a_rz_over_layer_mua():
+    r = run(three_layer(), 2000, options=OPTS64, tallies=ALL)
+    phi = r.fluence_rz(three_layer().tissue)
+    z = r.z_cm
+    assert np.all(np.isnan(phi[:, z < 0.1]))  # the glass layer
+    in_second = (z > 0.1) & (z < 0.2)
+    np.testing.assert_allclose(phi[:, in_second], np.asarray(r.a_rz)[:, in_second] / 1.0)
+    in_third = z > 0.2
+    np.testing.assert_allclose(phi[:, in_third], np.asarray(r.a_rz)[:, in_third] / 2.0)

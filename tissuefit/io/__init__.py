@@ -5,6 +5,7 @@ and names the file, the line or field, the value, the unit and the allowed range
 """
 
 from ._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
+from ._checkpoint import load_trace_state as load_trace_state, save_trace_state as save_trace_state
 from ._mci import read_mci as read_mci
 from ._mco import read_mco as read_mco, write_mco as write_mco
 from ._report import result_to_dict as result_to_dict, write_json as write_json

@@ -3,4 +3,4 @@
 from ._config import TALLY_NAMES as TALLY_NAMES, TallySpec as TallySpec, TraceOptions as TraceOptions
 from ._reference import trace_reference as trace_reference
 from ._result import TraceResult as TraceResult
-from ._trace import trace as trace
+from ._trace import TraceState as TraceState, trace as trace

@@ -72,6 +72,20 @@ class TraceResult(eqx.Module):
     roulette_stderr: Float[Array, ""] | float = 0.0
     path_stats: "PathStats | None" = None
 
+    def fluence_rz(self, tissue) -> np.ndarray:
+        """Fluence per launched photon, a_rz / mua [1/cm^2], on the (r, z) grid of `a_rz`.
+
+        `tissue` is the `LayeredTissue` that was traced; each depth bin takes the mua of the layer
+        holding its centre. Bins in glass (mua = 0) are NaN: absorption cannot measure fluence there.
+        """
+        if self.a_rz is None:
+            raise ValueError("fluence_rz needs the a_rz tally: add 'a_rz' to TallySpec.names")
+        z = self.z_cm
+        layer = np.clip(np.searchsorted(np.asarray(tissue.z1), z, side="right"), 0, tissue.num_layers - 1)
+        mua = np.asarray(tissue.mua)[layer]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(mua > 0, np.asarray(self.a_rz) / np.where(mua > 0, mua, 1.0)[None, :], np.nan)
+
     @property
     def r_cm(self) -> np.ndarray:
         """Radial bin centres [cm], (i + 1/2) dr as MCML places them."""

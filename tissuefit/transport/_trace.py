@@ -14,6 +14,7 @@ Memory is O(lanes + tally grids) whatever the photon count. Photon i's random nu
 from __future__ import annotations
 
 import functools
+import hashlib
 from typing import NamedTuple
 
 import equinox as eqx
@@ -407,6 +408,29 @@ def _compiled(tallies: TallySpec, options: TraceOptions, devices: tuple):
     return jax.jit(fn)
 
 
+class TraceState(eqx.Module):
+    """A run stopped between chunks: everything needed to resume it exactly.
+
+    - `fingerprint`: identifies the run (photons, chunks, key, scene values, tallies, options,
+      devices); resuming under a different one is refused.
+    - `chunks_done`: chunks completed; `leaves`: the lane state and float64 accumulators as a flat
+      list of numpy arrays (the order of `jax.tree.leaves`).
+    `tissuefit.io.save_trace_state` / `load_trace_state` write and read it atomically.
+    """
+
+    fingerprint: str = eqx.field(static=True)
+    chunks_done: int = eqx.field(static=True)
+    leaves: tuple
+
+
+def _fingerprint(scene, words, photons, chunks, tallies, options, devices) -> str:
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(scene):
+        digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
+    digest.update(repr((type(scene.source).__name__, photons, chunks, [int(w) for w in words], tallies, options, len(devices))).encode())
+    return digest.hexdigest()
+
+
 def trace(
     scene: Scene,
     *,
@@ -417,6 +441,8 @@ def trace(
     chunks: int = 1,
     progress=None,
     devices=None,
+    resume: TraceState | None = None,
+    on_chunk=None,
 ) -> TraceResult:
     """Trace `photons` photons through `scene` and return MCML's tallies (float64).
 
@@ -428,10 +454,14 @@ def trace(
     - `tallies`: which resolved tallies to accumulate and their grid (`TallySpec`).
     - `options`: lanes, working precision, launch sampling, roulette (`TraceOptions`).
     - `chunks`: split the photon indices into this many consecutive ranges, one compiled call each,
-      so that a long run can report progress; results do not depend on it beyond float64 rounding.
+      so that a long run can report progress and be checkpointed; results do not depend on it
+      beyond float64 rounding.
     - `progress`: optional callable `progress(photons_done)` called after each chunk.
     - `devices`: devices to shard photons over (default: all local devices). Each device traces a
       contiguous range of photon indices with `options.lanes // len(devices)` lanes.
+    - `resume`: a `TraceState` saved by `on_chunk` from an interrupted run with the same arguments;
+      the resumed run's result equals the uninterrupted one exactly.
+    - `on_chunk`: optional callable `on_chunk(state: TraceState)` after each chunk (checkpointing).
     Returns a `TraceResult` normalised per launched photon, with units as MCML's .mco.
     """
     photons = check_positive_int("photons", photons, high=MAX_PHOTONS)
@@ -450,12 +480,29 @@ def trace(
     # Device d owns photon indices [edges[d], edges[d + 1]); chunk c covers a fraction of each range.
     edges = np.linspace(0, photons, ndev + 1).round().astype(np.int64)
     acc = stack(*[_zeros_acc(tallies, options, layers)._replace(next_pid=jnp.asarray(e, jnp.int64)) for e in edges[:-1]])
+    fingerprint = _fingerprint(scene, words, photons, chunks, tallies, options, devices)
+    first = 1
+    if resume is not None:
+        if resume.fingerprint != fingerprint:
+            raise ValueError(
+                "resume: the saved state belongs to a different run (photons, chunks, key, scene, "
+                "tallies, options or device count differ)"
+            )
+        template, treedef = jax.tree.flatten((lanes, acc))
+        loaded = [jnp.asarray(a) for a in resume.leaves]
+        if [(a.shape, a.dtype) for a in loaded] != [(a.shape, a.dtype) for a in template]:
+            raise ValueError("resume: the saved state's arrays do not match this run's shapes")
+        lanes, acc = jax.tree.unflatten(treedef, loaded)
+        first = resume.chunks_done + 1
     fn = _compiled(tallies, options, devices)
     exhausted = False
-    for c in range(1, chunks + 1):
+    for c in range(first, chunks + 1):
         ends = edges[:-1] + ((edges[1:] - edges[:-1]) * c) // chunks
         lanes, acc, ex = fn(scene, words, lanes, acc, jnp.asarray(ends, jnp.int64))
         exhausted = bool(np.any(ex))
+        if on_chunk is not None:
+            leaves = tuple(np.asarray(a) for a in jax.tree.leaves((lanes, acc)))
+            on_chunk(TraceState(fingerprint=fingerprint, chunks_done=c, leaves=leaves))
         if progress is not None:
             progress(int(np.sum(np.asarray(acc.next_pid) - edges[:-1])))
         if exhausted:

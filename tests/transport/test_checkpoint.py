@@ -1,0 +1,64 @@
+"""Long runs: an interrupted and resumed run equals an uninterrupted one exactly."""
+
+import jax
+import numpy as np
+import pytest
+
+import tissuefit as tf
+from tissuefit import cli
+from tissuefit.io import load_trace_state, save_trace_state
+
+from ._scenes import three_layer
+
+OPTS = tf.TraceOptions(lanes=1024)
+TALLIES = tf.TallySpec(names=("rd_r", "a_rz"), nr=10, nz=10, dr=0.02, dz=0.02)
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def test_interrupted_and_resumed_run_equals_uninterrupted(tmp_path):
+    scene = three_layer()
+    kwargs = dict(key=jax.random.key(3), photons=6000, tallies=TALLIES, options=OPTS, chunks=4)
+    whole = tf.trace(scene, **kwargs)
+    path = tmp_path / "state.npz"
+
+    def save_then_stop(state):
+        save_trace_state(path, state)
+        if state.chunks_done == 2:
+            raise _Interrupt
+
+    with pytest.raises(_Interrupt):
+        tf.trace(scene, **kwargs, on_chunk=save_then_stop)
+    state = load_trace_state(path)
+    assert state.chunks_done == 2
+    resumed = tf.trace(scene, **kwargs, resume=state)
+    for name in ("rd", "a", "tt", "rsp", "rd_stderr", "rd_r", "a_rz"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name), err_msg=name)
+    assert resumed.steps == whole.steps
+
+
+def test_resume_refuses_a_different_run(tmp_path):
+    scene = three_layer()
+    states = []
+    tf.trace(scene, key=jax.random.key(3), photons=2000, options=OPTS, chunks=2, on_chunk=states.append)
+    with pytest.raises(ValueError, match="different run"):
+        tf.trace(scene, key=jax.random.key(4), photons=2000, options=OPTS, chunks=2, resume=states[0])
+
+
+def test_corrupted_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "state.npz"
+    bad.write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="not a tissuefit checkpoint"):
+        load_trace_state(bad)
+
+
+def test_cli_checkpoint_is_removed_after_success(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text(
+        'format = "tissuefit-scene/1"\nname = "ck"\n[[layers]]\nn = 1.0\nmua = 10.0\nmus = 90.0\ng = 0.75\n'
+        'thickness = 0.02\n[run]\nphotons = 2000\nlanes = 1024\n'
+    )
+    assert cli.main(["simulate", str(scene), "--checkpoint", str(tmp_path / "ck")]) == 0
+    assert list((tmp_path / "ck").iterdir()) == []
