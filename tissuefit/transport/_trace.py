@@ -457,8 +457,10 @@ def trace(
       so that a long run can report progress and be checkpointed; results do not depend on it
       beyond float64 rounding.
     - `progress`: optional callable `progress(photons_done)` called after each chunk.
-    - `devices`: devices to shard photons over (default: all local devices). Each device traces a
-      contiguous range of photon indices with `options.lanes // len(devices)` lanes.
+    - `devices`: devices to shard photons over (default: all devices of all processes, i.e. every
+      core, or every GPU, and every host after `jax.distributed.initialize`). Each device traces a
+      contiguous range of photon indices with `options.lanes // len(devices)` lanes; a process runs
+      the ranges of its own devices and the sums are added across processes.
     - `resume`: a `TraceState` saved by `on_chunk` from an interrupted run with the same arguments;
       the resumed run's result equals the uninterrupted one exactly.
     - `on_chunk`: optional callable `on_chunk(state: TraceState)` after each chunk (checkpointing).
@@ -468,18 +470,24 @@ def trace(
     chunks = check_positive_int("chunks", chunks, high=photons)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a tissuefit.Scene, got {type(scene).__name__}")
-    devices = tuple(jax.local_devices() if devices is None else devices)
-    ndev = min(len(devices), photons)
-    devices = devices[:ndev]
+    # Every device of every process takes a contiguous range of photon indices; this process runs
+    # the ranges of its own devices and the float64 sums are added across processes at the end.
+    devices = tuple(jax.devices() if devices is None else devices)
+    devices = devices[: min(len(devices), photons)]
+    ndev = len(devices)
+    edges = np.linspace(0, photons, ndev + 1).round().astype(np.int64)
+    mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
+    if not mine:
+        raise ValueError("devices: none of the given devices belongs to this process")
+    starts, stops = edges[mine], edges[np.array(mine) + 1]
+    local = tuple(devices[i] for i in mine)
     dtype = jnp.dtype(options.precision)
     layers = scene.tissue.num_layers
     words = _rng.key_words(key)
     lanes_per_device = max(options.lanes // ndev, 1)
     stack = functools.partial(jax.tree.map, lambda *a: jnp.stack(a))
-    lanes = stack(*[_idle_lanes(lanes_per_device, layers, dtype, options.path_stats)] * ndev)
-    # Device d owns photon indices [edges[d], edges[d + 1]); chunk c covers a fraction of each range.
-    edges = np.linspace(0, photons, ndev + 1).round().astype(np.int64)
-    acc = stack(*[_zeros_acc(tallies, options, layers)._replace(next_pid=jnp.asarray(e, jnp.int64)) for e in edges[:-1]])
+    lanes = stack(*[_idle_lanes(lanes_per_device, layers, dtype, options.path_stats)] * len(local))
+    acc = stack(*[_zeros_acc(tallies, options, layers)._replace(next_pid=jnp.asarray(e, jnp.int64)) for e in starts])
     fingerprint = _fingerprint(scene, words, photons, chunks, tallies, options, devices)
     first = 1
     if resume is not None:
@@ -494,21 +502,33 @@ def trace(
             raise ValueError("resume: the saved state's arrays do not match this run's shapes")
         lanes, acc = jax.tree.unflatten(treedef, loaded)
         first = resume.chunks_done + 1
-    fn = _compiled(tallies, options, devices)
+    fn = _compiled(tallies, options, local)
     exhausted = False
     for c in range(first, chunks + 1):
-        ends = edges[:-1] + ((edges[1:] - edges[:-1]) * c) // chunks
+        ends = starts + ((stops - starts) * c) // chunks
         lanes, acc, ex = fn(scene, words, lanes, acc, jnp.asarray(ends, jnp.int64))
         exhausted = bool(np.any(ex))
         if on_chunk is not None:
             leaves = tuple(np.asarray(a) for a in jax.tree.leaves((lanes, acc)))
             on_chunk(TraceState(fingerprint=fingerprint, chunks_done=c, leaves=leaves))
         if progress is not None:
-            progress(int(np.sum(np.asarray(acc.next_pid) - edges[:-1])))
+            progress(int(np.sum(np.asarray(acc.next_pid) - starts)))
         if exhausted:
             break
     total = jax.tree.map(lambda a: np.asarray(a).sum(0), acc)
+    if jax.process_count() > 1:
+        total, exhausted = _sum_over_processes(total, exhausted)
     return _normalise(total, photons, scene, tallies, options, exhausted)
+
+
+def _sum_over_processes(total: _Acc, exhausted: bool) -> tuple[_Acc, bool]:
+    """Add every process's float64 sums (multi-host runs started with `jax.distributed.initialize`)."""
+    from jax.experimental import multihost_utils
+
+    gathered = multihost_utils.process_allgather((total, np.asarray(exhausted)))
+    summed, flags = jax.tree.map(lambda a: np.asarray(a).sum(0), gathered[0]), gathered[1]
+    # next_pid is a per-range cursor, not a sum; nothing downstream reads it.
+    return summed, bool(np.any(flags))
 
 
 def _normalise(acc: _Acc, photons: int, scene: Scene, tallies: TallySpec, options: TraceOptions, exhausted: bool) -> TraceResult:
