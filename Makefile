@@ -24,6 +24,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python experiments/throughput/run.py
+	$(BIN)/python experiments/bench/run.py
 
 clean:
 	rm -rf $(VENV) out
