@@ -42,11 +42,11 @@ def check_range(
     """
     if not is_concrete(value):
         return
-    arr = np.asarray(value, dtype=np.float64)
     lo_txt = "-inf" if low is None else f"{low:g}"
     hi_txt = "inf" if high is None else f"{high:g}"
     allowed = f"{'(' if low_open or low is None else '['}{lo_txt}, {hi_txt}{')' if high_open or high is None else ']'}"
     unit_txt = "" if unit == "-" else f" {unit}"
+    arr = float_array(field, value, allowed=allowed + unit_txt, what="a number")
     for index, v in np.ndenumerate(arr):
         name = field if arr.ndim == 0 else f"{field}[{', '.join(map(str, index))}]"
         bad = math.isnan(v)
@@ -62,6 +62,21 @@ def check_range(
                 f"{name} = {v:g}{unit_txt} is out of range; allowed {allowed}{unit_txt}"
                 + (" (inf allowed)" if allow_inf else "")
             )
+
+
+def float_array(field: str, value, *, allowed: str, what: str = "a number or a list of numbers") -> np.ndarray:
+    """`value` as a float64 numpy array; `TypeError` naming the field if it holds anything but numbers.
+
+    numpy alone would say "could not convert string to float" without the field, and turn None
+    into nan. `allowed` (range and unit, e.g. ``"[0, inf) 1/cm"``) completes the message.
+    """
+    try:
+        raw = np.asarray(value)
+    except Exception:  # ragged lists and other objects numpy cannot hold
+        raw = None
+    if raw is None or raw.dtype.kind not in "iuf":
+        raise TypeError(f"{field} = {value!r} is not {what}; allowed {allowed}")
+    return raw.astype(np.float64)
 
 
 def check_positive_int(field: str, value, *, high: int | None = None) -> int:

@@ -245,6 +245,8 @@ def read_scene(path) -> Run:
             doc = tomllib.load(handle)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{name}: TOML syntax error: {err}") from None
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{name}: not a UTF-8 text file (TOML): {err.reason} at byte {err.start}") from None
     return scene_from_dict(doc, source_file=name, default_name=Path(path).stem)
 
 

@@ -14,6 +14,17 @@ class Scene(eqx.Module):
     tissue: LayeredTissue
     source: AbstractSource = eqx.field(default_factory=PencilBeam)
 
+    def __check_init__(self):
+        if not isinstance(self.tissue, LayeredTissue):
+            raise TypeError(
+                f"scene.tissue = {self.tissue!r} must be a tissuefit.LayeredTissue, got {type(self.tissue).__name__}"
+            )
+        if not isinstance(self.source, AbstractSource):
+            raise TypeError(
+                f"scene.source = {self.source!r} must be a tissuefit source (AbstractSource), "
+                f"got {type(self.source).__name__}"
+            )
+
 
 def paper_tissue() -> LayeredTissue:
     """The reference tissue of Zacher (2009): one semi-infinite layer, n = 1.1 under air,

@@ -14,10 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, UInt
 
-from .._checks import check_range
+from .._checks import check_range, float_array
 
 
 def _f64(value) -> Array:
+    # Anything but numbers is kept as given, for __check_init__ to refuse naming the field.
+    if not isinstance(value, jnp.ndarray) and np.asarray(value).dtype.kind not in "iuf":
+        return value
     return jnp.asarray(value, dtype=jnp.float64)
 
 
@@ -107,8 +110,13 @@ class LaunchList(AbstractSource):
     direction: Float[Array, "m 3"]
 
     def __init__(self, position, direction):
-        pos = np.asarray(position, dtype=np.float64).reshape(-1, 3)
-        d = np.asarray(direction, dtype=np.float64).reshape(-1, 3)
+        pos = float_array("source.position", position, allowed="rows of 3 numbers (x, y, z) [cm]")
+        d = float_array("source.direction", direction, allowed="rows of 3 numbers (ux, uy, uz)")
+        if pos.size and pos.shape[-1] != 3:
+            raise ValueError(f"source.position has shape {pos.shape}; expected one row of 3 numbers (x, y, z) [cm] per launch")
+        if d.size and d.shape[-1] != 3:
+            raise ValueError(f"source.direction has shape {d.shape}; expected one row of 3 numbers (ux, uy, uz) per launch")
+        pos, d = pos.reshape(-1, 3), d.reshape(-1, 3)
         if pos.shape != d.shape:
             raise ValueError(f"source.position has shape {pos.shape} but source.direction has {d.shape}")
         if pos.shape[0] < 1:

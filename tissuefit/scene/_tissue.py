@@ -2,17 +2,29 @@
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_range
+from .._checks import check_range, float_array, is_concrete
 
 
-def _as_array(value) -> Array:
+def _as_array(field: str, value, allowed: str) -> Array:
     # Scene data is stored in float64; the tracer casts to its working precision.
-    return jnp.asarray(np.asarray(value, dtype=np.float64)) if not isinstance(value, jnp.ndarray) else value
+    if isinstance(value, jnp.ndarray):
+        return value
+    return jnp.asarray(float_array(field, value, allowed=allowed))
+
+
+def _as_scalar(field: str, value, allowed: str) -> Array:
+    if not isinstance(value, jnp.ndarray):
+        value = float_array(field, value, allowed=allowed, what="a number")
+    if value.size != 1:
+        raise ValueError(f"{field} has shape {value.shape}; expected a single number in {allowed}")
+    return jnp.asarray(value).reshape(())
 
 
 class LayeredTissue(eqx.Module):
@@ -39,13 +51,13 @@ class LayeredTissue(eqx.Module):
     n_below: Float[Array, ""]
 
     def __init__(self, *, n, mua, mus, g, thickness, n_above=1.0, n_below=1.0):
-        self.n = _as_array(n).reshape(-1)
-        self.mua = _as_array(mua).reshape(-1)
-        self.mus = _as_array(mus).reshape(-1)
-        self.g = _as_array(g).reshape(-1)
-        self.thickness = _as_array(thickness).reshape(-1)
-        self.n_above = _as_array(n_above).reshape(())
-        self.n_below = _as_array(n_below).reshape(())
+        self.n = _as_array("layers.n", n, "[1, inf)").reshape(-1)
+        self.mua = _as_array("layers.mua", mua, "[0, inf) 1/cm").reshape(-1)
+        self.mus = _as_array("layers.mus", mus, "[0, inf) 1/cm").reshape(-1)
+        self.g = _as_array("layers.g", g, "(-1, 1)").reshape(-1)
+        self.thickness = _as_array("layers.thickness", thickness, "(0, inf) cm, inf for the last layer").reshape(-1)
+        self.n_above = _as_scalar("n_above", n_above, "[1, inf)")
+        self.n_below = _as_scalar("n_below", n_below, "[1, inf)")
 
     def __check_init__(self):
         sizes = {len(self.n), len(self.mua), len(self.mus), len(self.g), len(self.thickness)}
@@ -62,9 +74,26 @@ class LayeredTissue(eqx.Module):
         check_range("layers.mus", self.mus, unit="1/cm", low=0.0)
         check_range("layers.g", self.g, unit="-", low=-1.0, high=1.0, low_open=True, high_open=True)
         check_range("layers.thickness", self.thickness[:-1], unit="cm", low=0.0, low_open=True)
-        check_range("layers.thickness", self.thickness[-1:], unit="cm", low=0.0, low_open=True, allow_inf=True)
+        # the last layer as a scalar, so that the message names its index (a slice would say [0])
+        last = len(self.thickness) - 1
+        check_range(f"layers.thickness[{last}]", self.thickness[last], unit="cm", low=0.0, low_open=True, allow_inf=True)
         check_range("n_above", self.n_above, unit="-", low=1.0)
         check_range("n_below", self.n_below, unit="-", low=1.0)
+        self._check_semi_infinite_glass(last)
+
+    def _check_semi_infinite_glass(self, last: int) -> None:
+        """Refuse a semi-infinite last layer that neither absorbs nor scatters: a photon entering it
+        would travel forever, and its weight could be booked nowhere."""
+        values = (self.thickness[last], self.mua[last], self.mus[last])
+        if not all(is_concrete(v) for v in values):
+            return
+        thickness, mua, mus = (float(np.asarray(v)) for v in values)
+        if math.isinf(thickness) and mua == 0.0 and mus == 0.0:
+            raise ValueError(
+                f"layers[{last}]: the last layer is semi-infinite (thickness = inf cm) and neither absorbs "
+                "nor scatters (mua = mus = 0 1/cm); photons would travel forever. Give it a finite "
+                "thickness in (0, inf) cm or mua + mus > 0 1/cm (an index-matched substrate is n_below)."
+            )
 
     @property
     def num_layers(self) -> int:

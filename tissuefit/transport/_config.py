@@ -15,6 +15,13 @@ TALLY_NAMES = (
 """Resolved tallies a caller may request. rsp, rd, a and tt with their standard errors are always kept."""
 
 
+def _tally_names(names) -> tuple[str, ...]:
+    # A tuple keeps the spec hashable (it is a jit cache key); a bare string would iterate letters.
+    if isinstance(names, str) or not isinstance(names, (tuple, list)):
+        raise TypeError(f"tallies.names = {names!r} must be a tuple of tally names from {list(TALLY_NAMES)}")
+    return tuple(names)
+
+
 class TallySpec(eqx.Module):
     """Which resolved tallies to accumulate, on MCML's grid.
 
@@ -25,7 +32,7 @@ class TallySpec(eqx.Module):
       radial, depth or angle bin are collected in that last bin.
     """
 
-    names: tuple[str, ...] = eqx.field(static=True, default=("rd_r",))
+    names: tuple[str, ...] = eqx.field(static=True, default=("rd_r",), converter=_tally_names)
     dz: float = eqx.field(static=True, default=0.01)
     dr: float = eqx.field(static=True, default=0.01)
     nz: int = eqx.field(static=True, default=100)
@@ -86,3 +93,5 @@ class TraceOptions(eqx.Module):
         check_positive_int("options.steps_per_refill", self.steps_per_refill)
         if self.max_steps is not None:
             check_positive_int("options.max_steps", self.max_steps)
+        if not isinstance(self.path_stats, bool):
+            raise TypeError(f"options.path_stats = {self.path_stats!r} must be True or False")

@@ -32,7 +32,9 @@ def fresnel(n1: Array, n2: Array, cos_i: Array) -> tuple[Array, Array]:
     rp = jnp.square((c - d) / jnp.where(c + d > 0, c + d, 1.0))
     r = jnp.where(tir | (cos_i <= 0.0), 1.0, 0.5 * (rs + rp))
     r = jnp.where(n1 == n2, 0.0, r)
-    cos_t = jnp.where(tir, 0.0, jnp.where(n1 == n2, cos_i, cos_t))
+    # Matched indices win over the TIR test: near grazing, 1 - cos_i^2 rounds to 1 (float32 below
+    # cos_i ~ 2.4e-4), so sin_t2 = 1 "is" TIR, and a photon crossing with cos_t = 0 got stuck.
+    cos_t = jnp.where(n1 == n2, cos_i, jnp.where(tir, 0.0, cos_t))
     return r, cos_t
 
 
