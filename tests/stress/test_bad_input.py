@@ -274,19 +274,7 @@ def test_semi_infinite_glass_is_refused_at_construction(layers):
 # ---------------------------------------------------------------------------------------------
 # Scene files (what tests/io does not cover) and the CLI
 
-MINIMAL = """\
-format = "tissuefit-scene/1"
-
-[[layers]]
-n = 1.1
-mua = 20.0
-mus = 200.0
-g = 0.9
-thickness = "inf"
-
-[run]
-photons = 1000
-"""
+from tests.io.test_scenefile import MINIMAL  # noqa: E402  (the smallest valid scene file)
 
 
 def _with_source(text: str) -> str:
