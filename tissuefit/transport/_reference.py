@@ -59,12 +59,7 @@ class _Layers:
         self.mut = [a + s for a, s in zip(self.mua, self.mus)]
         self.z0 = [sum(self.thickness[:i]) for i in range(self.count)]
         self.z1 = [z + t for z, t in zip(self.z0, self.thickness)]
-        if self.is_glass(self.count - 1) and math.isinf(self.thickness[-1]):
-            raise ValueError(
-                "layers: the last layer is semi-infinite and non-scattering, non-absorbing "
-                "(mua = mus = 0 /cm); photons would travel forever. Give it a finite thickness [cm] "
-                "or mua + mus > 0 /cm."
-            )
+        # A semi-infinite glass last layer is refused by LayeredTissue itself.
 
     def is_glass(self, layer: int) -> bool:
         """A layer with mua = mus = 0: crossed without interaction."""
