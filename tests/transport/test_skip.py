@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 
 import tissuefit as tf
-from tissuefit.transport import _trace as T
+from tissuefit.transport import _lanes as T
 
 from ._scenes import three_layer
 
