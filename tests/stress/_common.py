@@ -221,14 +221,3 @@ def scenes(**tissue_kwargs) -> st.SearchStrategy[tf.Scene]:
     return st.builds(tf.Scene, tissues(**tissue_kwargs), SOURCES)
 
 
-def float32_geometry_error(tissue: tf.LayeredTissue) -> float:
-    """Largest relative error of a layer thickness as float32 layer faces represent it.
-
-    The tracer casts the faces z0, z1 (float64 sums of thicknesses) to the working precision; a layer
-    much thinner than its depth's float32 spacing is distorted or vanishes (see test_edge_physics)."""
-    z0 = np.asarray(tissue.z0, np.float64)
-    z1 = np.asarray(tissue.z1, np.float64)
-    finite = np.isfinite(z1)
-    t = (z1 - z0)[finite]
-    t32 = (z1.astype(np.float32).astype(np.float64) - z0.astype(np.float32).astype(np.float64))[finite]
-    return float(np.max(np.abs(t32 - t) / t)) if t.size else 0.0

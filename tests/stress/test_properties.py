@@ -22,7 +22,6 @@ from ._common import (
     assert_resolved_tallies_add_up,
     assert_sane,
     assert_statistically_equal,
-    float32_geometry_error,
     rounding_bound,
     run,
     scenes,
@@ -53,9 +52,6 @@ def test_energy_is_booked_and_every_tally_is_finite_and_non_negative(scene, phot
 
 
 def _compare_precisions(scene, photons, seed):
-    # Float32 layer faces cannot represent a layer much thinner than its depth's float32 spacing;
-    # that limitation is pinned by test_edge_physics.test_float32_thin_layer_deep_down_*.
-    assume(float32_geometry_error(scene.tissue) <= 1e-4)
     r32 = run(scene, photons, "float32", seed=seed)
     r64 = run(scene, photons, "float64", seed=seed)
     for r in (r32, r64):

@@ -70,14 +70,14 @@ class _Medium(NamedTuple):
     mua: Array
     mus: Array
     g: Array
-    z0: Array
-    z1: Array
+    z0: Array  # depth of each layer's top face [cm]: only to bin absorption in absolute depth
+    thickness: Array  # [cm]; photon depths are kept relative to their layer's top face
 
 
 def _medium(scene: Scene, dtype) -> _Medium:
     t = scene.tissue
     n_ext = jnp.concatenate([t.n_above[None], t.n, t.n_below[None]]).astype(dtype)
-    return _Medium(n_ext, t.mua.astype(dtype), t.mus.astype(dtype), t.g.astype(dtype), t.z0.astype(dtype), t.z1.astype(dtype))
+    return _Medium(n_ext, t.mua.astype(dtype), t.mus.astype(dtype), t.g.astype(dtype), t.z0.astype(dtype), t.thickness.astype(dtype))
 
 
 def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
@@ -194,7 +194,7 @@ def _refill(lanes, acc, medium, source, words, end, options: TraceOptions):
     ux0, uy0, uz0 = phys.refract(d[:, 0], d[:, 1], d[:, 2], n_ext[0], n_ext[1], c0)
     ux1, uy1, uz1 = phys.refract(ux0, uy0, uz0, n_ext[1], n_ext[2], c1)
     # Below a glass top layer the photon starts at its bottom face, displaced along its path.
-    shift = medium.z1[0].astype(f64) / jnp.where(uz0 > 0, uz0, 1.0)
+    shift = medium.thickness[0].astype(f64) / jnp.where(uz0 > 0, uz0, 1.0)
     x = jnp.where(glass0, xy[:, 0] + ux0 * shift, xy[:, 0]).astype(dtype)
     y = jnp.where(glass0, xy[:, 1] + uy0 * shift, xy[:, 1]).astype(dtype)
     ux0, uy0, uz0, ux1, uy1, uz1 = (v.astype(dtype) for v in (ux0, uy0, uz0, ux1, uy1, uz1))
@@ -203,7 +203,7 @@ def _refill(lanes, acc, medium, source, words, end, options: TraceOptions):
     status0 = jnp.where(w <= 0, KILLED, jnp.where(through_glass, ESC_BOTTOM, ALIVE))
     new = _Lanes(
         x=x, y=y,
-        z=jnp.where(glass0, medium.z1[0], 0.0).astype(dtype) * jnp.ones_like(x),
+        z=jnp.zeros_like(x),  # at the top face of the layer it starts in
         ux=jnp.where(glass0, ux1, ux0), uy=jnp.where(glass0, uy1, uy0),
         uz=jnp.where(glass0, uz1, uz0),
         w=w, sleft=jnp.zeros_like(w),
@@ -261,7 +261,10 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     tau = jnp.where(lanes.sleft > 0, lanes.sleft, -jnp.log(xi_step))
     s = jnp.where(turbid, tau / safe_mut, jnp.inf)
     uz = lanes.uz
-    face = jnp.where(uz > 0, _pick(medium.z1, layer), _pick(medium.z0, layer))
+    # Depth z is measured from the current layer's top face, so a thin layer far below the surface
+    # keeps its full resolution in float32 (absolute depths would round its faces together).
+    thickness = _pick(medium.thickness, layer)
+    face = jnp.where(uz > 0, thickness, 0.0)
     db = jnp.where(uz != 0, (face - lanes.z) / jnp.where(uz != 0, uz, 1.0), jnp.inf)
     hit = s > db
     stuck = ~hit & ~turbid  # travelling parallel to the faces of a glass layer: never arrives
@@ -269,7 +272,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     run = jnp.where(stuck, 0.0, run)
     x = lanes.x + lanes.ux * run
     y = lanes.y + lanes.uy * run
-    z = jnp.where(hit, face, lanes.z + uz * run)
+    z = lanes.z + uz * run
     sleft = jnp.where(hit & turbid, (s - db) * mut, 0.0)
 
     # cross or not (boundary branch)
@@ -285,6 +288,9 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     leave_bottom = ~reflect & ~up & (layer == layers - 1)
     b_layer = jnp.where(reflect, layer, layer + jnp.where(up, -1, 1))
     b_layer = jnp.clip(b_layer, 0, layers - 1)
+    # after a crossing: the face just crossed, in the new layer's coordinates
+    entered_from_below = _pick(medium.thickness, b_layer)
+    b_z = jnp.where(reflect, face, jnp.where(up, entered_from_below, 0.0))
 
     # drop and spin (interaction branch). The weight kept is w * albedo, so that mus = 0 leaves
     # exactly 0 (w - w mua / mut can leave an ulp that roulette then revives in float32) and mua = 0
@@ -312,7 +318,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     status = jnp.where(low & ~survive, KILLED, status)
 
     upd = dict(
-        x=x, y=y, z=z, ux=ux, uy=uy, uz=uz_new, w=w, sleft=sleft,
+        x=x, y=y, z=jnp.where(hit, b_z, z), ux=ux, uy=uy, uz=uz_new, w=w, sleft=sleft,
         layer=jnp.where(hit, b_layer, layer).astype(jnp.int32),
         status=status.astype(jnp.int32), rng=rng,
         absorbed=lanes.absorbed + jnp.where(interact, dw, 0.0),
@@ -331,7 +337,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     deposit = jnp.where(interact, dw, 0.0).astype(jnp.float64)
     acc_upd = {}
     if acc.a_z is not None or acc.a_rz is not None:
-        iz = _bin(z, tallies.dz, tallies.nz)
+        iz = _bin(_pick(medium.z0, layer) + z, tallies.dz, tallies.nz)
         if acc.a_z is not None:
             acc_upd["a_z"] = acc.a_z.at[iz].add(deposit)
         if acc.a_rz is not None:
