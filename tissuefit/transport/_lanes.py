@@ -190,7 +190,7 @@ def _refill(lanes, acc, medium, source, words, end, options: TraceOptions):
     n_ext = medium.n_ext.astype(f64)
     layers = medium.mua.shape[0]
     glass0 = (medium.mua[0] == 0) & (medium.mus[0] == 0)
-    rsp, c0, c1, _ = phys.specular_launch(n_ext[0], n_ext[1], n_ext[2], glass0, layers == 1, d[:, 2])
+    rsp, c0, c1 = phys.specular_launch(n_ext[0], n_ext[1], n_ext[2], glass0, d[:, 2])
     ux0, uy0, uz0 = phys.refract(d[:, 0], d[:, 1], d[:, 2], n_ext[0], n_ext[1], c0)
     ux1, uy1, uz1 = phys.refract(ux0, uy0, uz0, n_ext[1], n_ext[2], c1)
     # Below a glass top layer the photon starts at its bottom face, displaced along its path.

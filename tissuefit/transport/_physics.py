@@ -91,11 +91,11 @@ def refract(
 
 
 def specular_launch(
-    n_above: Array, n0: Array, n1: Array, glass0: Array, only_layer: bool, cos_i: Array
-) -> tuple[Float[Array, " lanes"], Float[Array, " lanes"], Float[Array, " lanes"], Float[Array, " lanes"]]:
+    n_above: Array, n0: Array, n1: Array, glass0: Array, cos_i: Array
+) -> tuple[Float[Array, " lanes"], Float[Array, " lanes"], Float[Array, " lanes"]]:
     """Specular reflectance at launch, MCML's convention.
 
-    Returns (rsp, cos in layer 0, cos in layer 1, transmitted-through-glass fraction). When the top
+    Returns (rsp, cos in layer 0, cos in layer 1). When the top
     layer is glass (`glass0`), MCML folds its multiple reflections into Rsp:
     Rsp = r1 + (1 - r1)^2 r2 / (1 - r1 r2), and the photon starts below the glass.
     """
@@ -104,4 +104,4 @@ def specular_launch(
     denom = jnp.where(1.0 - r1 * r2 > 0, 1.0 - r1 * r2, 1.0)
     rsp_glass = r1 + (1.0 - r1) ** 2 * r2 / denom
     rsp = jnp.where(glass0, rsp_glass, r1)
-    return rsp, c0, c1, 1.0 - rsp
+    return rsp, c0, c1
