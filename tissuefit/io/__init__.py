@@ -4,7 +4,7 @@ This is the only package that reads or writes files. Every reader validates befo
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
 """
 
-from ._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
+from .._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
 from ._checkpoint import load_trace_state as load_trace_state, save_trace_state as save_trace_state
 from ._mci import read_mci as read_mci
 from ._mco import read_mco as read_mco, write_mco as write_mco

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..transport import TraceState
-from ._atomic import atomic_writer
+from .._atomic import atomic_writer
 
 _FORMAT = "tissuefit-trace-state/1"
 

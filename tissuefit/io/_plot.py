@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._atomic import atomic_writer
+from .._atomic import atomic_writer
 
 
 def write_profile_plot(path, record: dict) -> None:

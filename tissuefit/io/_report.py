@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from ..transport import TraceResult
-from ._atomic import write_text_atomic
+from .._atomic import write_text_atomic
 from ._run import Run
 from ._scenefile import scene_to_dict
 

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._atomic import atomic_writer
 from .._checks import check_range
 from ._optics import LN10, AbstractAbsorber, LayerOptics
 from ._spectra import DEFAULT_BANDS, BandGrid, _check_increasing, _parse_csv, _parse_float
@@ -407,15 +408,22 @@ def read_eem(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ex, em, matrix
 
 
-def write_eem(path, excitation_nm, emission_nm, matrix, *, comment: str = "") -> None:
-    """Write an EEM file that `read_eem` reads back exactly; `comment` becomes `#` lines (cite the source)."""
-    ex = _check_increasing("excitation_nm", excitation_nm)
-    em = _check_increasing("emission_nm", emission_nm)
+def _checked_eem(excitation_nm, emission_nm, matrix, *, axis_prefix: str):
+    """(excitation [nm], emission [nm], matrix) as float64 arrays, or ValueError naming what is wrong:
+    axes strictly increasing, matrix excitation × emission, entries >= 0."""
+    ex = _check_increasing(f"{axis_prefix}excitation_nm", excitation_nm)
+    em = _check_increasing(f"{axis_prefix}emission_nm", emission_nm)
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (ex.size, em.size):
         raise ValueError(f"eem has shape {m.shape}; expected ({ex.size}, {em.size}) (excitation × emission)")
     check_range("eem", m, unit="-", low=0.0)
-    with open(os.fspath(path), "w", encoding="utf-8") as fh:
+    return ex, em, m
+
+
+def write_eem(path, excitation_nm, emission_nm, matrix, *, comment: str = "") -> None:
+    """Write an EEM file that `read_eem` reads back exactly; `comment` becomes `#` lines (cite the source)."""
+    ex, em, m = _checked_eem(excitation_nm, emission_nm, matrix, axis_prefix="")
+    with atomic_writer(path) as fh:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
         fh.write(",".join(["excitation_nm\\emission_nm", *(repr(float(x)) for x in em)]) + "\n")
@@ -431,12 +439,7 @@ def eem_on_bands(bands: BandGrid, excitation_nm, emission_nm, matrix) -> np.ndar
     its wavelength range: no data counts as no fluorescence), averaged over each excitation
     band's response and integrated over each emission band's response.
     """
-    ex = _check_increasing("eem.excitation_nm", excitation_nm)
-    em = _check_increasing("eem.emission_nm", emission_nm)
-    m = np.asarray(matrix, dtype=np.float64)
-    if m.shape != (ex.size, em.size):
-        raise ValueError(f"eem has shape {m.shape}; expected ({ex.size}, {em.size}) (excitation × emission)")
-    check_range("eem", m, unit="-", low=0.0)
+    ex, em, m = _checked_eem(excitation_nm, emission_nm, matrix, axis_prefix="eem.")
     centres = bands.wavelengths
     def on_centres(x):
         return x.shape == centres.shape and np.allclose(x, centres, atol=1e-9, rtol=0)

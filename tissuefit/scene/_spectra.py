@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._atomic import atomic_writer
 from .._checks import check_range, is_concrete
 
 Response = Literal["boxcar", "gaussian", "delta"]
@@ -449,7 +450,7 @@ def write_spectrum_table(path, wavelengths, columns: Mapping[str, Sequence[float
         if v.size != wl.size:
             raise ValueError(f"column {name!r} has {v.size} values for {wl.size} wavelengths")
         check_range(name, v, unit="-")
-    with open(os.fspath(path), "w", encoding="utf-8") as fh:
+    with atomic_writer(path) as fh:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
         fh.write(",".join(["wavelength_nm", *names]) + "\n")
