@@ -165,6 +165,47 @@ def _harvest(lanes: _Lanes, acc: _Acc, tallies: TallySpec) -> tuple[_Lanes, _Acc
     return lanes, acc._replace(**upd)
 
 
+def launch_photons(source, pid, u, n_ext, thickness0, glass0, layers: int, dtype):
+    """Specular reflection and refraction into the tissue of photons `pid` (MCML's launch).
+
+    Returns (x, y, ux, uy, uz, w, layer, status, rsp) in working precision `dtype` (rsp float64):
+    under a glass top layer (`glass0`) the photon starts at the glass's bottom face in layer 1.
+    The launch is computed in float64 whatever the working precision: near grazing incidence and
+    through a glass top layer, 1 - Rsp and the refracted cosines are ill-conditioned in float32
+    (a 0.25 % bias of the transmitted weight at 89.9 deg through glass). Once per photon: cheap.
+    """
+    f64 = jnp.float64
+    xy, d = source.launch(pid.astype(jnp.uint32), u.astype(f64))
+    xy = xy.astype(f64)
+    d = d.astype(f64)
+    n_ext = n_ext.astype(f64)
+    rsp, c0, c1 = phys.specular_launch(n_ext[0], n_ext[1], n_ext[2], glass0, d[:, 2])
+    ux0, uy0, uz0 = phys.refract(d[:, 0], d[:, 1], d[:, 2], n_ext[0], n_ext[1], c0)
+    ux1, uy1, uz1 = phys.refract(ux0, uy0, uz0, n_ext[1], n_ext[2], c1)
+    # Below a glass top layer the photon starts at its bottom face, displaced along its path.
+    shift = thickness0.astype(f64) / jnp.where(uz0 > 0, uz0, 1.0)
+    x = jnp.where(glass0, xy[:, 0] + ux0 * shift, xy[:, 0]).astype(dtype)
+    y = jnp.where(glass0, xy[:, 1] + uy0 * shift, xy[:, 1]).astype(dtype)
+    ux = jnp.where(glass0, ux1, ux0).astype(dtype)
+    uy = jnp.where(glass0, uy1, uy0).astype(dtype)
+    uz = jnp.where(glass0, uz1, uz0).astype(dtype)
+    w = (1.0 - rsp).astype(dtype)
+    through_glass = glass0 & (layers == 1)  # the whole slab is glass: transmitted at once
+    status = jnp.where(w <= 0, KILLED, jnp.where(through_glass, ESC_BOTTOM, ALIVE)).astype(jnp.int32)
+    layer = jnp.where(glass0 & (layers > 1), 1, 0).astype(jnp.int32) * jnp.ones(x.shape, jnp.int32)
+    return x, y, ux, uy, uz, w, layer, status, rsp
+
+
+def launch_uniforms(words, pid, rng, options: TraceOptions, dtype):
+    """The two uniforms [lanes, 2] a source maps to a launch point: Halton points of the photon
+    index, or the first two draws of the photon's stream; returns them and the advanced streams."""
+    if options.launch == "halton":
+        return _rng.halton_uniforms(words, pid, dtype), rng
+    u0, rng = _rng.next_uniform(rng, dtype)
+    u1, rng = _rng.next_uniform(rng, dtype)
+    return jnp.stack([u0, u1], -1), rng
+
+
 def _refill(lanes, acc, medium, source, words, end, options: TraceOptions):
     """Launch photons next_pid, next_pid + 1, ... (below `end`) into the lanes that are not alive."""
     dtype = lanes.w.dtype
@@ -174,41 +215,17 @@ def _refill(lanes, acc, medium, source, words, end, options: TraceOptions):
     launch = free & (new_pid < end)
     pid = jnp.where(launch, new_pid, lanes.pid)
     rng = _rng.seed_streams(words, pid.astype(jnp.uint32))
-    if options.launch == "halton":
-        u = _rng.halton_uniforms(words, pid, dtype)
-    else:
-        u0, rng = _rng.next_uniform(rng, dtype)
-        u1, rng = _rng.next_uniform(rng, dtype)
-        u = jnp.stack([u0, u1], -1)
-    # The launch is computed in float64 whatever the working precision: near grazing incidence and
-    # through a glass top layer, 1 - Rsp and the refracted cosines are ill-conditioned in float32
-    # (a 0.25 % bias of the transmitted weight at 89.9 deg through glass). Once per photon: cheap.
-    f64 = jnp.float64
-    xy, d = source.launch(pid.astype(jnp.uint32), u.astype(f64))
-    xy = xy.astype(f64)
-    d = d.astype(f64)
-    n_ext = medium.n_ext.astype(f64)
-    layers = medium.mua.shape[0]
-    glass0 = (medium.mua[0] == 0) & (medium.mus[0] == 0)
-    rsp, c0, c1 = phys.specular_launch(n_ext[0], n_ext[1], n_ext[2], glass0, d[:, 2])
-    ux0, uy0, uz0 = phys.refract(d[:, 0], d[:, 1], d[:, 2], n_ext[0], n_ext[1], c0)
-    ux1, uy1, uz1 = phys.refract(ux0, uy0, uz0, n_ext[1], n_ext[2], c1)
-    # Below a glass top layer the photon starts at its bottom face, displaced along its path.
-    shift = medium.thickness[0].astype(f64) / jnp.where(uz0 > 0, uz0, 1.0)
-    x = jnp.where(glass0, xy[:, 0] + ux0 * shift, xy[:, 0]).astype(dtype)
-    y = jnp.where(glass0, xy[:, 1] + uy0 * shift, xy[:, 1]).astype(dtype)
-    ux0, uy0, uz0, ux1, uy1, uz1 = (v.astype(dtype) for v in (ux0, uy0, uz0, ux1, uy1, uz1))
-    w = (1.0 - rsp).astype(dtype)
-    through_glass = glass0 & (layers == 1)  # the whole slab is glass: transmitted at once
-    status0 = jnp.where(w <= 0, KILLED, jnp.where(through_glass, ESC_BOTTOM, ALIVE))
+    u, rng = launch_uniforms(words, pid, rng, options, dtype)
+    x, y, ux, uy, uz, w, layer, status0, rsp = launch_photons(
+        source, pid, u, medium.n_ext, medium.thickness[0], (medium.mua[0] == 0) & (medium.mus[0] == 0), medium.mua.shape[0], dtype
+    )
     new = _Lanes(
         x=x, y=y,
         z=jnp.zeros_like(x),  # at the top face of the layer it starts in
-        ux=jnp.where(glass0, ux1, ux0), uy=jnp.where(glass0, uy1, uy0),
-        uz=jnp.where(glass0, uz1, uz0),
+        ux=ux, uy=uy, uz=uz,
         w=w, sleft=jnp.zeros_like(w),
-        layer=jnp.where(glass0 & (layers > 1), 1, 0).astype(jnp.int32) * jnp.ones(x.shape, jnp.int32),
-        status=status0.astype(jnp.int32),
+        layer=layer,
+        status=status0,
         pid=pid, rng=rng,
         absorbed=jnp.zeros_like(w), roulette=jnp.zeros_like(w),
         steps=jnp.zeros(x.shape, jnp.int32),

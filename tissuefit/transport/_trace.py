@@ -36,10 +36,32 @@ from ._result import PathStats, TraceResult, bin_measures
 MAX_PHOTONS = 2**32 - 1
 
 
-def _loop(scene: Scene, words, lanes: _Lanes, acc: _Acc, end, tallies: TallySpec, options: TraceOptions):
+class LayeredKernel(eqx.Module):
+    """The single-band tracer's steps (`_lanes.py`) behind the interface `_loop` drives.
+
+    A kernel is static (a jit cache key) and provides `medium(scene)`, `refill`, `step` and
+    `harvest`; the spectral tracer has its own (`_spectral.py`)."""
+
+    tallies: TallySpec = eqx.field(static=True)
+    options: TraceOptions = eqx.field(static=True)
+
+    def medium(self, scene):
+        return _medium(scene, jnp.dtype(self.options.precision))
+
+    def refill(self, lanes, acc, medium, scene, words, end):
+        return _refill(lanes, acc, medium, scene.source, words, end, self.options)
+
+    def step(self, lanes, acc, medium, scene):
+        return _step(lanes, acc, medium, self.tallies, self.options)
+
+    def harvest(self, lanes, acc, medium):
+        return _harvest(lanes, acc, self.tallies)
+
+
+def _loop(kernel, scene, words, lanes, acc, end):
     """Trace photon indices acc.next_pid .. end - 1 to completion (or until the step budget)."""
-    dtype = jnp.dtype(options.precision)
-    medium = _medium(scene, dtype)
+    options = kernel.options
+    medium = kernel.medium(scene)
     max_iter = (
         jnp.iinfo(jnp.int64).max
         if options.max_steps is None
@@ -53,11 +75,11 @@ def _loop(scene: Scene, words, lanes: _Lanes, acc: _Acc, end, tallies: TallySpec
 
     def body(carry):
         lanes, acc, it = carry
-        lanes, acc = _harvest(lanes, acc, tallies)
-        lanes, acc = _refill(lanes, acc, medium, scene.source, words, end, options)
+        lanes, acc = kernel.harvest(lanes, acc, medium)
+        lanes, acc = kernel.refill(lanes, acc, medium, scene, words, end)
 
         def one(_, c):
-            return _step(*c, medium, tallies, options)
+            return kernel.step(*c, medium, scene)
 
         # Not unrolled: the loop boundary materialises the lane state after every step. Unrolled
         # steps let XLA fuse (and recompute) whole chains of steps, which measured 2-3x slower.
@@ -65,13 +87,13 @@ def _loop(scene: Scene, words, lanes: _Lanes, acc: _Acc, end, tallies: TallySpec
         return lanes, acc, it + 1
 
     lanes, acc, _ = jax.lax.while_loop(cond, body, (lanes, acc, jnp.zeros((), jnp.int64)))
-    lanes, acc = _harvest(lanes, acc, tallies)
+    lanes, acc = kernel.harvest(lanes, acc, medium)
     exhausted = (acc.next_pid < end) | jnp.any(lanes.status == ALIVE)
     return lanes, acc, exhausted
 
 
 @functools.lru_cache(maxsize=64)
-def _compiled(tallies: TallySpec, options: TraceOptions, devices: tuple):
+def _compiled(kernel, devices: tuple):
     """The jitted loop, sharded so that each local device runs its own lanes on its own photon range.
 
     Devices share nothing while tracing (no collectives); their float64 sums are added on the host.
@@ -80,7 +102,7 @@ def _compiled(tallies: TallySpec, options: TraceOptions, devices: tuple):
 
     def per_device(scene, words, lanes, acc, end):
         squeeze = functools.partial(jax.tree.map, lambda a: a[0])
-        lanes, acc, exhausted = _loop(scene, words, squeeze(lanes), squeeze(acc), end[0], tallies, options)
+        lanes, acc, exhausted = _loop(kernel, scene, words, squeeze(lanes), squeeze(acc), end[0])
         expand = functools.partial(jax.tree.map, lambda a: a[None])
         return expand(lanes), expand(acc), exhausted[None]
 
@@ -110,11 +132,11 @@ class TraceState(eqx.Module):
     leaves: tuple
 
 
-def _fingerprint(scene, words, photons, chunks, tallies, options, devices) -> str:
+def _fingerprint(scene, words, photons, chunks, kernel, devices) -> str:
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(scene):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
-    digest.update(repr((type(scene.source).__name__, photons, chunks, [int(w) for w in words], tallies, options, len(devices))).encode())
+    digest.update(repr((type(scene.source).__name__, photons, chunks, [int(w) for w in words], kernel, len(devices))).encode())
     return digest.hexdigest()
 
 
@@ -157,8 +179,28 @@ def trace(
     chunks = check_positive_int("chunks", chunks, high=photons)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a tissuefit.Scene, got {type(scene).__name__}")
-    # Every device of every process takes a contiguous range of photon indices; this process runs
-    # the ranges of its own devices and the float64 sums are added across processes at the end.
+    dtype = jnp.dtype(options.precision)
+    layers = scene.tissue.num_layers
+    acc, exhausted = run_lanes(
+        LayeredKernel(tallies, options), scene, key=key, photons=photons, chunks=chunks,
+        progress=progress, devices=devices, resume=resume, on_chunk=on_chunk,
+        new_lanes=lambda n: _idle_lanes(n, layers, dtype, options.path_stats),
+        new_acc=lambda: _zeros_acc(tallies, options, layers),
+    )
+    total = jax.tree.map(lambda a: np.asarray(a).sum(0), acc)
+    if jax.process_count() > 1:
+        total, exhausted = _sum_over_processes(total, exhausted)
+    return _normalise(total, photons, scene, tallies, options, exhausted)
+
+
+def run_lanes(kernel, scene, *, key, photons: int, chunks: int, progress, devices, resume, on_chunk, new_lanes, new_acc):
+    """Shard photon indices 0 .. photons - 1 over devices and trace them with `kernel`, chunk by chunk.
+
+    Every device of every process takes a contiguous range of photon indices; this process runs
+    the ranges of its own devices. `new_lanes(n)` makes n idle lanes, `new_acc()` empty
+    accumulators (its `next_pid` is set here). Returns (accumulators of this process's devices,
+    stacked on a leading axis, as numpy; whether the step budget stopped the run).
+    """
     devices = tuple(jax.devices() if devices is None else devices)
     devices = devices[: min(len(devices), photons)]
     ndev = len(devices)
@@ -168,14 +210,12 @@ def trace(
         raise ValueError("devices: none of the given devices belongs to this process")
     starts, stops = edges[mine], edges[np.array(mine) + 1]
     local = tuple(devices[i] for i in mine)
-    dtype = jnp.dtype(options.precision)
-    layers = scene.tissue.num_layers
     words = _rng.key_words(key)
-    lanes_per_device = max(options.lanes // ndev, 1)
+    lanes_per_device = max(kernel.options.lanes // ndev, 1)
     stack = functools.partial(jax.tree.map, lambda *a: jnp.stack(a))
-    lanes = stack(*[_idle_lanes(lanes_per_device, layers, dtype, options.path_stats)] * len(local))
-    acc = stack(*[_zeros_acc(tallies, options, layers)._replace(next_pid=jnp.asarray(e, jnp.int64)) for e in starts])
-    fingerprint = _fingerprint(scene, words, photons, chunks, tallies, options, devices)
+    lanes = stack(*[new_lanes(lanes_per_device)] * len(local))
+    acc = stack(*[new_acc()._replace(next_pid=jnp.asarray(e, jnp.int64)) for e in starts])
+    fingerprint = _fingerprint(scene, words, photons, chunks, kernel, devices)
     first = 1
     if resume is not None:
         if resume.fingerprint != fingerprint:
@@ -189,7 +229,7 @@ def trace(
             raise ValueError("resume: the saved state's arrays do not match this run's shapes")
         lanes, acc = jax.tree.unflatten(treedef, loaded)
         first = resume.chunks_done + 1
-    fn = _compiled(tallies, options, local)
+    fn = _compiled(kernel, local)
     exhausted = False
     for c in range(first, chunks + 1):
         ends = starts + ((stops - starts) * c) // chunks
@@ -202,10 +242,7 @@ def trace(
             progress(int(np.sum(np.asarray(acc.next_pid) - starts)))
         if exhausted:
             break
-    total = jax.tree.map(lambda a: np.asarray(a).sum(0), acc)
-    if jax.process_count() > 1:
-        total, exhausted = _sum_over_processes(total, exhausted)
-    return _normalise(total, photons, scene, tallies, options, exhausted)
+    return jax.tree.map(np.asarray, acc), exhausted
 
 
 def _sum_over_processes(total: _Acc, exhausted: bool) -> tuple[_Acc, bool]:
