@@ -8,6 +8,8 @@ from ._source import (
     PencilBeam as PencilBeam,
 )
 from ._tissue import LayeredTissue as LayeredTissue
+from ._regions import AbstractRegion as AbstractRegion, Box as Box, Sphere as Sphere, VoxelGrid as VoxelGrid
+from ._spectral import SpectralScene as SpectralScene, SpectralTissue as SpectralTissue
 from ._spectra import (
     DEFAULT_BANDS as DEFAULT_BANDS,
     AbstractSpectrum as AbstractSpectrum,

@@ -4,3 +4,9 @@ from ._config import TALLY_NAMES as TALLY_NAMES, TallySpec as TallySpec, TraceOp
 from ._reference import trace_reference as trace_reference
 from ._result import TraceResult as TraceResult
 from ._trace import TraceState as TraceState, trace as trace
+from ._records import PhotonRecords as PhotonRecords, RecordSpec as RecordSpec
+from ._spectral import (
+    SpectralOptions as SpectralOptions,
+    SpectralResult as SpectralResult,
+    trace_spectral as trace_spectral,
+)

@@ -1,0 +1,89 @@
+"""Photon records: what the tracer hands to the photon maps (DESIGN.md §7).
+
+Two kinds, each in a fixed-size buffer whose capacity is chosen before `jit` (static):
+- surface records: one per photon leaving the tissue through the top face (z = 0), at the exit
+  point, with the direction *outside* the tissue (pointing up, uz < 0);
+- volume records: one per interaction of a converted (fluorescent) photon inside the tissue,
+  at the interaction point (z > 0, depth below the surface), with the direction the photon had
+  *arriving* at the interaction (the direction a phase function is evaluated against).
+  With `RecordSpec.volume_all`, non-converted photons' interactions are recorded too.
+
+Coordinates: tissue surface at z = 0, depth z > 0 downward (MCML's convention), all in cm.
+Powers are per launched photon (a record's `power` summed over all records of a kind gives the
+corresponding tally: surface powers sum to rd per band; volume powers sum to the weight arriving
+at interactions). Buffers fill in photon-index order within each device's photon range, so a run
+is reproducible; when a buffer is full, further records are counted in `overflow` and dropped —
+never silently.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from .._checks import check_positive_int
+
+
+class RecordSpec(eqx.Module):
+    """Which photon records to keep and how many (static; changing it recompiles).
+
+    - `surface`: capacity of the surface buffer (0 = no surface records; the default).
+    - `volume`: capacity of the volume buffer (0 = none; the default).
+    - `volume_all`: record interactions of non-converted photons too (default: converted only).
+    The paper keeps 300 000 of each. Records are off unless a consumer asks for them.
+    """
+
+    surface: int = eqx.field(static=True, default=0)
+    volume: int = eqx.field(static=True, default=0)
+    volume_all: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        for name in ("surface", "volume"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"records.{name} = {value!r}; allowed an integer in [0, 2^31 - 1] (buffer capacity, records)")
+            if value:
+                check_positive_int(f"records.{name}", value, high=2**31 - 1)
+        if not isinstance(self.volume_all, bool):
+            raise TypeError(f"records.volume_all = {self.volume_all!r} must be True or False")
+
+    @property
+    def any(self) -> bool:
+        return self.surface > 0 or self.volume > 0
+
+
+class PhotonRecords(eqx.Module):
+    """One buffer of photon records (numpy arrays after a trace; rows >= `count` are padding).
+
+    - `position` [capacity, 3] cm: (x, y, z), z >= 0 depth below the surface.
+    - `direction` [capacity, 3]: unit vector (see the module docstring for which direction).
+    - `power` [capacity, bands]: power per band per launched photon [-] (photon counts: emitted
+      fluorescence carries the quantum yield, not the Stokes energy factor).
+    - `band` [capacity] int: the band whose optical properties carried the photon when recorded.
+    - `converted` [capacity] bool: the photon had been converted (fluorescence) when recorded.
+    - `photon` [capacity] int: the index of the photon that made the record.
+    - `count`: valid rows; `overflow`: records dropped because the buffer was full.
+    """
+
+    position: Float[Array, "capacity 3"]
+    direction: Float[Array, "capacity 3"]
+    power: Float[Array, "capacity bands"]
+    band: Int[Array, " capacity"]
+    converted: Bool[Array, " capacity"]
+    photon: Int[Array, " capacity"]
+    count: int
+    overflow: int
+
+    @property
+    def capacity(self) -> int:
+        return int(self.position.shape[0])
+
+    def valid(self) -> "PhotonRecords":
+        """The first `count` rows only (numpy slices)."""
+        n = int(self.count)
+        return PhotonRecords(
+            position=self.position[:n], direction=self.direction[:n], power=self.power[:n],
+            band=self.band[:n], converted=self.converted[:n], photon=self.photon[:n],
+            count=n, overflow=int(self.overflow),
+        )

@@ -1,0 +1,310 @@
+"""The multi-spectral tracer with fluorescence: `trace_spectral(scene, ...)` → `SpectralResult`.
+
+It drives the lanes of `_spectral_lanes.py` with the same loop, sharding, chunking and
+checkpointing as the single-band `trace` (`_trace.run_lanes`). What is compiled follows from the
+static scene: no fluorophore, no conversion code; bands with no source power and no emission
+reaching them carry no weight (shared mode: not even a slot); no record buffers unless asked for.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._checks import check_positive_int, check_range, is_concrete
+from ..scene import BandGrid, SpectralScene
+from ._config import TraceOptions
+from ._records import PhotonRecords, RecordSpec
+from ._spectral_lanes import SpectralConfig, band_weights, harvest, idle_lanes, medium_arrays, refill, step, zeros_acc
+from ._trace import MAX_PHOTONS, TraceState, run_lanes
+
+Mode = Literal["auto", "per_band", "shared"]
+
+
+class SpectralOptions(eqx.Module):
+    """How the spectrum is carried (static).
+
+    - `mode`: "per_band" (a photon carries one band at a time), "shared" (every photon carries all
+      active bands along one path, reweighted by likelihood ratios; needs g equal across bands in
+      each medium) or "auto" (default): shared when g is equal and mut and the albedo differ by at
+      most `AUTO_SHARED_SPREAD` between bands — then one path serves all bands at the cost of one —
+      otherwise per band (measured trade: experiments/spectral/RESULTS.md).
+    - `conversion_boost`: >= 1; fluorescence conversions are sampled this many times more often
+      than the analog rate (capped at probability 1), with their weights divided accordingly
+      (unbiased; more fluorescence photons per launched photon). 1 keeps every photon's energy
+      exactly conserved.
+    """
+
+    mode: Mode = eqx.field(static=True, default="auto")
+    conversion_boost: float = eqx.field(static=True, default=1.0)
+
+    def __check_init__(self):
+        if self.mode not in ("auto", "per_band", "shared"):
+            raise ValueError(f"spectral.mode = {self.mode!r}; allowed 'auto', 'per_band' or 'shared'")
+        check_range("spectral.conversion_boost", self.conversion_boost, unit="-", low=1.0)
+
+
+class SpectralResult(eqx.Module):
+    """Per-band tallies of a spectral trace, normalised per launched photon (numpy, float64).
+
+    Fractions of the launched power (the source's in-grid power is 1), per band [bands]:
+    - `launched`: weight entering the tissue in each band (1 - Rsp of the source's band power;
+      per_band: a Monte Carlo estimate, shared: exact); `rsp`: specular reflection per band.
+    - `rd`, `tt`: escaping through the top / bottom in each band (fluorescence included);
+      `rd_fluor`, `tt_fluor`: the part carried by converted (fluorescence) photons.
+    - `a`: absorbed as heat in each band (by tissue and by fluorophores, less what they re-emit);
+      `a_fluor`: the part absorbed from fluorescence light.
+    - `emitted`: fluorescence emitted into each band; `converted`: weight converted out of each
+      band (first conversions), `reconverted`: conversions of fluorescence light.
+    - `roulette`: net weight created by roulette per band (zero-mean); `roulette_fluor` its part
+      on converted photons.
+    - `rd_stderr`, `tt_stderr`, `rd_fluor_stderr`, `tt_fluor_stderr`: standard errors from
+      per-photon moments.
+    Bookkeeping: per band, launched + emitted = rd + tt + a + converted + reconverted - roulette,
+    to rounding with conversion_boost = 1 in per_band mode or with equal properties across bands
+    (every photon's weight is conserved), in expectation otherwise (boosted splits and likelihood
+    ratios create and destroy weight with zero mean).
+    Shared mode resolves weights per band only where light leaves or converts: there `a` and
+    `a_fluor` are what the balance leaves (unbiased) and `roulette` is not resolved (zeros).
+    Totals over bands: `rd_total`, `tt_total` (with per-photon standard errors), `a_total`, `rsp_total`.
+    `surface_records`, `volume_records`: `PhotonRecords` or None when not requested.
+    `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `budget_exhausted`.
+    """
+
+    photons: int = eqx.field(static=True)
+    bands: BandGrid = eqx.field(static=True)
+    mode: str = eqx.field(static=True)
+    active: tuple[int, ...] = eqx.field(static=True)
+    launched: Float[Array, " bands"]
+    rsp: Float[Array, " bands"]
+    rd: Float[Array, " bands"]
+    tt: Float[Array, " bands"]
+    rd_fluor: Float[Array, " bands"]
+    tt_fluor: Float[Array, " bands"]
+    rd_stderr: Float[Array, " bands"]
+    tt_stderr: Float[Array, " bands"]
+    rd_fluor_stderr: Float[Array, " bands"]
+    tt_fluor_stderr: Float[Array, " bands"]
+    a: Float[Array, " bands"]
+    a_fluor: Float[Array, " bands"]
+    emitted: Float[Array, " bands"]
+    converted: Float[Array, " bands"]
+    reconverted: Float[Array, " bands"]
+    roulette: Float[Array, " bands"]
+    roulette_fluor: Float[Array, " bands"]
+    rsp_total: Float[Array, ""]
+    rd_total: Float[Array, ""]
+    a_total: Float[Array, ""]
+    tt_total: Float[Array, ""]
+    rd_total_stderr: Float[Array, ""]
+    tt_total_stderr: Float[Array, ""]
+    steps: Array
+    budget_exhausted: bool
+    surface_records: PhotonRecords | None = None
+    volume_records: PhotonRecords | None = None
+
+    @property
+    def wavelengths(self) -> np.ndarray:
+        """Band centres [nm]."""
+        return self.bands.wavelengths
+
+
+AUTO_SHARED_SPREAD = 0.05
+"""`mode="auto"` shares paths when, in every medium, g is equal across the active bands and mut and
+the albedo differ by at most this fraction between bands (the measured trade:
+experiments/spectral/RESULTS.md)."""
+
+
+def _active_properties(scene: SpectralScene, active: tuple[int, ...]):
+    mua, mus, g = scene.tissue.properties()
+    if not all(is_concrete(t) for t in (mua, mus, g)):
+        return None
+    idx = np.asarray(active)
+    return tuple(np.asarray(t)[:, idx] for t in (mua, mus, g))
+
+
+def _relative_spread(values: np.ndarray) -> float:
+    hi, lo = values.max(1), values.min(1)
+    return float(np.max(np.where(hi > 0, (hi - lo) / np.where(hi > 0, hi, 1.0), 0.0)))
+
+
+def _shared_ok(props) -> str | None:
+    """Why shared paths cannot serve these properties, or None."""
+    mua, mus, g = props
+    mut = mua + mus
+    for name, values in (("mua + mus", mut), ("mus", mus)):
+        mixed = np.nonzero((values > 0).any(1) & ~(values > 0).all(1))[0]
+        if mixed.size:
+            return f"medium {int(mixed[0])} has {name} = 0 1/cm in some bands and > 0 in others"
+    uneven = np.nonzero(np.ptp(g, axis=1) > 0)[0]
+    if uneven.size:
+        return f"medium {int(uneven[0])} has g differing between bands ({g[uneven[0]].min():g} .. {g[uneven[0]].max():g})"
+    return None
+
+
+def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: SpectralOptions, records: RecordSpec) -> SpectralConfig:
+    """The static configuration of a spectral trace, decided in Python from the scene."""
+    active = scene.active_bands()
+    props = _active_properties(scene, active)
+    mode = spectral.mode
+    voxels = any(r.num_media > 1 for r in scene.tissue.regions)
+    if mode == "auto":
+        mode = "per_band"
+        if props is not None and not voxels and _shared_ok(props) is None:
+            mua, mus, _ = props
+            mut = mua + mus
+            albedo = np.where(mut > 0, mus / np.where(mut > 0, mut, 1.0), 0.0)
+            if max(_relative_spread(mut), _relative_spread(albedo)) <= AUTO_SHARED_SPREAD:
+                mode = "shared"
+    elif mode == "shared":
+        if voxels:
+            raise ValueError("spectral.mode = 'shared': voxel grids are traced per band only (use 'per_band' or 'auto')")
+        if props is None:
+            raise ValueError("spectral.mode = 'shared' needs concrete optical properties to check; trace outside jit or use 'per_band'")
+        why = _shared_ok(props)
+        if why is not None:
+            raise ValueError(f"spectral.mode = 'shared': {why}; shared paths cannot serve that. Use mode 'per_band'.")
+    return SpectralConfig(
+        mode=mode, num_bands=scene.tissue.bands.num_bands, active=active, fluorescent=scene.tissue.fluorescent,
+        num_layers=scene.tissue.num_layers, num_media=scene.tissue.num_media, boost=float(spectral.conversion_boost),
+        records=records, options=options,
+    )
+
+
+class SpectralKernel(eqx.Module):
+    """The spectral lanes behind `_trace._loop`'s kernel interface."""
+
+    config: SpectralConfig = eqx.field(static=True)
+
+    @property
+    def options(self) -> TraceOptions:
+        return self.config.options
+
+    def medium(self, scene):
+        return medium_arrays(scene, self.config, jnp.dtype(self.options.precision))
+
+    def refill(self, lanes, acc, medium, scene, words, end):
+        return refill(lanes, acc, medium, scene, words, end, self.config)
+
+    def step(self, lanes, acc, medium, scene):
+        return step(lanes, acc, medium, scene.tissue, self.config)
+
+    def harvest(self, lanes, acc, medium):
+        return harvest(lanes, acc, medium, self.config)
+
+
+
+def trace_spectral(
+    scene: SpectralScene,
+    *,
+    key: Array,
+    photons: int,
+    options: TraceOptions = TraceOptions(),
+    spectral: SpectralOptions = SpectralOptions(),
+    records: RecordSpec = RecordSpec(),
+    chunks: int = 1,
+    progress=None,
+    devices=None,
+    resume: TraceState | None = None,
+    on_chunk=None,
+) -> SpectralResult:
+    """Trace `photons` photons of the scene's source spectrum through a `SpectralScene`.
+
+    Arguments as for `trace` (`key` keyword-only; `options` lanes, precision, launch, roulette,
+    budget; `chunks`, `progress`, `devices`, `resume`, `on_chunk`), plus:
+    - `spectral`: `SpectralOptions` (per-band or shared paths, conversion boost);
+    - `records`: `RecordSpec`, capacities of the surface and volume photon records (default none).
+    Returns a `SpectralResult`: per-band tallies normalised per launched photon, with records.
+    """
+    photons = check_positive_int("photons", photons, high=MAX_PHOTONS)
+    chunks = check_positive_int("chunks", chunks, high=photons)
+    if not isinstance(scene, SpectralScene):
+        raise TypeError(f"scene must be a tissuefit.SpectralScene, got {type(scene).__name__}")
+    for name, value, kind in (("options", options, TraceOptions), ("spectral", spectral, SpectralOptions), ("records", records, RecordSpec)):
+        if not isinstance(value, kind):
+            raise TypeError(f"{name} must be a tissuefit.{kind.__name__}, got {type(value).__name__}")
+    if options.path_stats:
+        raise ValueError("options.path_stats: path statistics of spectral traces are not available yet; use trace() per band")
+    config = resolve_config(scene, options, spectral, records)
+    dtype = jnp.dtype(options.precision)
+    ndev = len(tuple(jax.devices() if devices is None else devices)[:photons])
+    acc, exhausted = run_lanes(
+        SpectralKernel(config), scene, key=key, photons=photons, chunks=chunks, progress=progress,
+        devices=devices, resume=resume, on_chunk=on_chunk,
+        new_lanes=lambda n: idle_lanes(n, config, dtype),
+        new_acc=lambda: zeros_acc(config, ndev, dtype),
+    )
+    if jax.process_count() > 1:
+        raise NotImplementedError("trace_spectral: multi-process runs are not supported yet; run one process per host")
+    return _normalise(acc, photons, scene, config, exhausted)
+
+
+def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) -> PhotonRecords | None:
+    """Concatenate the devices' buffers (valid rows only) and evaluate each record's per-band power."""
+    if buf is None:
+        return None
+    rows = [np.arange(int(c)) for c in buf.count]
+
+    def take(a):
+        return None if a is None else np.concatenate([a[d][r] for d, r in enumerate(rows)])
+
+    count = int(sum(r.size for r in rows))
+    band = take(buf.band).astype(np.int64)
+    power = np.zeros((count, config.num_bands))
+    if config.shared:
+        medium = medium_arrays(scene, config, jnp.float64)
+        w = band_weights(jnp.asarray(take(buf.w), jnp.float64), jnp.asarray(take(buf.spectrum), jnp.float64),
+                         jnp.asarray(take(buf.path), jnp.float64), jnp.asarray(take(buf.hits), jnp.float64),
+                         jnp.asarray(band), medium)
+        power[:, np.asarray(config.active)] = np.asarray(w) / photons
+        band = np.asarray(config.active)[band] if count else band
+    else:
+        power[np.arange(count), band] = take(buf.w).astype(np.float64) / photons
+    return PhotonRecords(
+        position=take(buf.position).astype(np.float64), direction=take(buf.direction).astype(np.float64),
+        power=power, band=band, converted=take(buf.converted), photon=take(buf.photon),
+        count=count, overflow=int(np.sum(buf.overflow)),
+    )
+
+
+def _normalise(acc, photons: int, scene: SpectralScene, config: SpectralConfig, exhausted: bool) -> SpectralResult:
+    n = float(photons)
+    total = lambda a: np.asarray(a).sum(0)  # noqa: E731
+    totals, escape, deposit, flux = (total(a) for a in (acc.totals, acc.escape, acc.deposit, acc.flux))
+
+    def mean_err(s, s2):
+        m = s / n
+        return m, np.sqrt(np.maximum(s2 / n - m * m, 0.0) / max(n - 1.0, 1.0))
+
+    tot_mean, tot_err = mean_err(totals[:, 0], totals[:, 1])
+    esc_mean, esc_err = mean_err(escape[..., 0], escape[..., 1])  # [bands, 4]
+    rsp_total = float(total(acc.rsp)) / n
+    power = np.asarray(scene.band_power(), dtype=np.float64)
+    launched, emitted, converted, reconverted = (flux[:, k] / n for k in range(4))
+    rd, tt, rd_fluor, tt_fluor = (esc_mean[:, k] for k in range(4))
+    if config.shared:
+        # Shared paths evaluate band weights only where light leaves or converts: heat per band is
+        # what the balance leaves (an unbiased estimate; roulette is zero-mean and not resolved).
+        a = launched + emitted - rd - tt - converted - reconverted
+        a_fluor = emitted - rd_fluor - tt_fluor - reconverted
+        roulette = roulette_fluor = np.zeros_like(a)
+    else:
+        a, a_fluor = (deposit[:, 0] + deposit[:, 1]) / n, deposit[:, 1] / n
+        roulette, roulette_fluor = (deposit[:, 2] + deposit[:, 3]) / n, deposit[:, 3] / n
+    return SpectralResult(
+        photons=photons, bands=scene.tissue.bands, mode=config.mode, active=config.active,
+        launched=launched, rsp=rsp_total * power, rd=rd, tt=tt, rd_fluor=rd_fluor, tt_fluor=tt_fluor,
+        rd_stderr=esc_err[:, 0], tt_stderr=esc_err[:, 1], rd_fluor_stderr=esc_err[:, 2], tt_fluor_stderr=esc_err[:, 3],
+        a=a, a_fluor=a_fluor, emitted=emitted, converted=converted, reconverted=reconverted,
+        roulette=roulette, roulette_fluor=roulette_fluor,
+        rsp_total=rsp_total, rd_total=tot_mean[0], tt_total=tot_mean[1], a_total=float(a.sum()),
+        rd_total_stderr=tot_err[0], tt_total_stderr=tot_err[1],
+        steps=total(acc.steps), budget_exhausted=bool(exhausted),
+        surface_records=_records(acc.surface, scene, config, photons),
+        volume_records=_records(acc.volume, scene, config, photons),
+    )
