@@ -15,6 +15,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/tissuefit simulate data_spec/examples/paper_tissue.toml --photons 2000000 --out out/demo --plot
 	@echo "wrote out/demo/paper_tissue.json and out/demo/paper_tissue.png"
+	$(BIN)/tissuefit simulate data_spec/examples/paper_fluorescence.toml --photons 1000000 --out out/demo --plot
+	@echo "wrote out/demo/paper_fluorescence.json and out/demo/paper_fluorescence.png"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

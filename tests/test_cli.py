@@ -189,3 +189,169 @@ def test_long_runs_are_chunked_for_the_progress_bar(fake, capsys):
     assert cli.main(["simulate", PAPER, "--photons", str(5 * cli.PHOTONS_PER_CHUNK), "--json"]) == 0
     (call,) = fake.calls
     assert call["chunks"] == 5
+
+
+# ---------------------------------------------------------------------------------------------
+# Spectral scenes
+
+PAPER_FLUOR = str(EXAMPLES / "paper_fluorescence.toml")
+POLYP = str(EXAMPLES / "ppix_polyp.toml")
+RESULTS_MD = Path(__file__).parents[1] / "data_spec" / "results.md"
+
+SMALL_SPECTRAL = """\
+format = "tissuefit-scene/1"
+name = "small"
+
+[bands]
+start_nm = 400
+stop_nm = 640
+spacing_nm = 80
+
+[[layers]]
+n = 1.37
+thickness = 0.05
+absorbers = [
+  { kind = "constant", mua = 2.0 },
+  { kind = "protoporphyrin_ix", c = 30.0, quantum_yield = 0.5 },
+]
+scattering = { kind = "constant", mus = 50.0, g = 0.8 }
+
+[run]
+photons = 100
+seed = 5
+lanes = 256
+
+[records]
+surface = 5000
+volume = 5000
+"""
+
+
+class FakeTraceSpectral:
+    """Records each call and returns `fake_spectral_result` (per-band tallies adding to 1)."""
+
+    def __init__(self, overflow=0):
+        self.calls, self.overflow = [], overflow
+
+    def __call__(self, scene, *, key, photons, options, spectral, records, chunks=1, progress=None, resume=None,
+                 on_chunk=None):
+        from tests.io.conftest import fake_spectral_result
+
+        self.calls.append(dict(scene=scene, key=key, photons=photons, options=options, spectral=spectral,
+                               records=records, chunks=chunks))
+        if progress is not None:
+            progress(photons)
+        return fake_spectral_result(scene, photons=photons, records=records, overflow=self.overflow)
+
+
+@pytest.fixture
+def fake_spectral(monkeypatch):
+    tracer = FakeTraceSpectral()
+    monkeypatch.setattr(cli, "trace_spectral", tracer)
+    monkeypatch.setattr(cli, "trace", lambda *a, **k: pytest.fail("a spectral scene went to the single-band tracer"))
+    return tracer
+
+
+def test_check_accepts_the_spectral_examples(capsys):
+    assert cli.main(["check", PAPER_FLUOR]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "ok: 1 run(s)",
+        "  paper_fluorescence: spectral, 21 bands 400–720 nm, 1 layer(s), 0 region(s), 2 fluorophore(s)"]
+    assert cli.main(["check", POLYP]) == 0
+    out = capsys.readouterr().out
+    assert "ppix_polyp: spectral, 21 bands 400–720 nm, 1 layer(s), 1 region(s), 3 fluorophore(s)" in out
+
+
+def test_check_refuses_a_bad_spectral_file(tmp_path, capsys, fake_spectral):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(PAPER_FLUOR).read_text().replace('kind = "collagen", d = 0.2', 'kind = "collagen", d = 2'))
+    for command in ("check", "simulate"):
+        assert cli.main([command, str(bad)]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and "Traceback" not in err
+        assert f"{bad}: layers[0].absorbers[1].d = 2 is out of range; allowed [0, 1]" in err
+    assert fake_spectral.calls == []
+
+
+def test_simulate_spectral_json_has_the_documented_keys(fake_spectral, capsys):
+    argv = ["simulate", POLYP, "--json", "--photons", "50", "--seed", "7", "--precision", "float64", "--lanes", "32",
+            "--halton"]
+    assert cli.main(argv) == 0
+    record = json.loads(capsys.readouterr().out)
+    (call,) = fake_spectral.calls
+    assert call["photons"] == 50 and call["records"].surface == 300_000 and call["spectral"].mode == "auto"
+    assert (call["options"].precision, call["options"].lanes, call["options"].launch) == ("float64", 32, "halton")
+    np.testing.assert_array_equal(jax.random.key_data(call["key"]), jax.random.key_data(jax.random.key(7)))
+    documented = RESULTS_MD.read_text()
+    missing = [key for key in record if f"`{key}`" not in documented]
+    assert not missing, f"data_spec/results.md does not document {missing}"
+    assert record["kind"] == "spectral" and record["seed"] == 7 and record["photons"] == 50
+    assert record["bands"]["wavelength_nm"][:2] == [400.0, 416.0] and len(record["rd"]) == 21
+    for key in ("rd", "rd_stderr", "rd_fluor", "rd_fluor_stderr", "tt_fluor", "tt_fluor_stderr", "tt", "a", "emitted"):
+        assert len(record[key]) == 21 and record["units"][key] == "-", key
+    assert record["records"] == {"surface": {"capacity": 300_000, "count": 1234, "overflow": 0},
+                                 "volume": {"capacity": 300_000, "count": 567, "overflow": 0}, "volume_all": False}
+    total = record["rsp_total"] + record["rd_total"] + record["tt_total"] + record["a_total"]
+    assert total == pytest.approx(1.0)
+    assert record["rd_fluor_total"] == pytest.approx(sum(record["rd_fluor"]))
+    scene = record["scene"]
+    overrides = {"photons": 50, "seed": 7, "precision": "float64", "lanes": 32, "launch": "halton"}
+    assert scene["run"] | overrides == scene["run"]
+    assert scene["regions"][0]["kind"] == "sphere" and scene["source"]["spectrum"]["kind"] == "violet_led"
+    assert record["input_files"] == [] and record["tissuefit_version"] == version("tissuefit")
+
+
+def test_simulate_spectral_human_summary(monkeypatch, capsys):
+    monkeypatch.setattr(cli, "trace_spectral", FakeTraceSpectral(overflow=3))
+    assert cli.main(["simulate", POLYP, "--photons", "40"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("ppix_polyp (") and "40 photons" in lines[0]
+    assert "21 bands 400–720 nm, mode per_band" in lines[0]
+    assert lines[1].startswith("  totals over bands: rsp = ") and lines[2].startswith("  fluorescence escaping: top ")
+    header = lines[3].split()
+    assert header[:3] == ["nm", "rd", "±"] and "rd_fluor" in header and "tt_fluor" in header and "emitted" in header
+    rows = lines[4:25]
+    assert [row.split()[0] for row in rows] == [f"{400 + 16 * b}" for b in range(21)]
+    assert "photon records: surface 1234 of 300000 (3 dropped: buffer full), volume 567 of 300000" in lines[25]
+    assert lines[26].startswith("  WARNING: a record buffer overflowed")
+
+
+def test_simulate_spectral_out_and_plot(fake_spectral, tmp_path, capsys):
+    assert cli.main(["simulate", PAPER_FLUOR, "--out", str(tmp_path), "--plot", "--photons", "10"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper_fluorescence.json", "paper_fluorescence.png"]
+    assert (tmp_path / "paper_fluorescence.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((tmp_path / "paper_fluorescence.json").read_text())["kind"] == "spectral"
+
+
+def test_long_spectral_runs_are_chunked(fake_spectral, capsys):
+    assert cli.main(["simulate", PAPER_FLUOR, "--photons", str(4 * cli.SPECTRAL_PHOTONS_PER_CHUNK), "--json"]) == 0
+    (call,) = fake_spectral.calls
+    assert call["chunks"] == 4
+
+
+def test_simulate_a_small_spectral_scene_for_real(tmp_path, capsys):
+    """The real tracer: 2000 photons on 4 bands with strong PpIX in a finite slab."""
+    scene = tmp_path / "small.toml"
+    scene.write_text(SMALL_SPECTRAL)
+    out = tmp_path / "out"
+    assert cli.main(["simulate", str(scene), "--photons", "2000", "--json", "--out", str(out)]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record == json.loads((out / "small.json").read_text())
+    assert record["kind"] == "spectral" and record["photons"] == 2000 and record["mode"] in ("per_band", "shared")
+    assert record["bands"]["wavelength_nm"] == [400.0, 480.0, 560.0, 640.0] and all(record["bands"]["active"])
+    rd, tt, a, rsp = (np.asarray(record[k]) for k in ("rd", "tt", "a", "rsp"))
+    # energy: sum over bands of rd + tt + a + rsp is 1, within a few standard errors (roulette is zero-mean)
+    err = np.hypot(record["rd_total_stderr"], record["tt_total_stderr"])
+    assert abs(float((rd + tt + a + rsp).sum()) - 1.0) <= 4 * err + 1e-9
+    assert record["rd_total"] == pytest.approx(rd.sum()) and record["tt_total"] == pytest.approx(tt.sum())
+    assert 0 < record["rd_total"] < 1 and 0 < record["tt_total"] < 1 and np.all(a >= 0)
+    # white light: each band gets a quarter of the power, less its specular reflection (n 1.37 under air)
+    np.testing.assert_allclose(rsp, ((1.37 - 1) / (1.37 + 1)) ** 2 / 4)
+    # PpIX emits at 634 and 700 nm: escaping fluorescence (all but) only in the 640 nm band, resolved
+    rd_fluor, rd_fluor_err = np.asarray(record["rd_fluor"]), np.asarray(record["rd_fluor_stderr"])
+    # (80 nm bands: the 560 nm band, 520-600 nm, holds the far tail of the 634 nm peak, ~1e-4 of it)
+    assert rd_fluor[:3].sum() < 1e-3 * rd_fluor[3] and rd_fluor[3] > 3 * rd_fluor_err[3]
+    assert np.all(rd_fluor <= rd) and np.asarray(record["emitted"]).sum() > 0
+    surface, volume = record["records"]["surface"], record["records"]["volume"]
+    assert surface["capacity"] == 5000 and 0 < surface["count"] <= 5000 and surface["overflow"] == 0
+    assert 0 < volume["count"] <= 5000

@@ -1,4 +1,5 @@
-"""Files: scene files (TOML, data_spec/scene.md), MCML's .mci input and .mco output, JSON records.
+"""Files: scene files (TOML, data_spec/scene.md; single-band or spectral), MCML's .mci input and
+.mco output, JSON run records and their plots.
 
 This is the only package that reads or writes files. Every reader validates before anything runs
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
@@ -8,9 +9,13 @@ from .._atomic import atomic_writer as atomic_writer, write_text_atomic as write
 from ._checkpoint import load_trace_state as load_trace_state, save_trace_state as save_trace_state
 from ._mci import read_mci as read_mci
 from ._mco import read_mco as read_mco, write_mco as write_mco
-from ._report import result_to_dict as result_to_dict, write_json as write_json
-from ._plot import write_profile_plot as write_profile_plot
-from ._run import MAX_PHOTONS as MAX_PHOTONS, Run as Run
+from ._report import (
+    result_to_dict as result_to_dict,
+    spectral_result_to_dict as spectral_result_to_dict,
+    write_json as write_json,
+)
+from ._plot import write_profile_plot as write_profile_plot, write_spectrum_plot as write_spectrum_plot
+from ._run import MAX_PHOTONS as MAX_PHOTONS, Run as Run, SpectralRun as SpectralRun
 from ._scenefile import (
     load_runs as load_runs,
     read_scene as read_scene,

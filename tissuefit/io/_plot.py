@@ -48,3 +48,44 @@ def write_profile_plot(path, record: dict) -> None:
             fig.savefig(handle, format="png", dpi=120)
     finally:
         plt.close(fig)
+
+
+def _values(entries) -> np.ndarray:
+    return np.asarray([np.nan if v is None else v for v in entries], dtype=float)
+
+
+def write_spectrum_plot(path, record: dict) -> None:
+    """Plot a spectral run record (`spectral_result_to_dict`) into a PNG at `path`, atomically:
+    diffuse reflectance rd per band [-] and the escaping fluorescence rd_fluor (top) and tt_fluor
+    (bottom, when any) per band [-], against the band centre [nm], with ±2 standard errors."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if record.get("kind") != "spectral":
+        raise ValueError("plot: not a spectral run record (its 'kind' is not 'spectral')")
+    wl = np.asarray(record["bands"]["wavelength_nm"], dtype=float)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    panels = [(left, [("rd", "Rd (all light)")], "diffuse reflectance per band [-]"),
+              (right, [("rd_fluor", "escaping top"), ("tt_fluor", "escaping bottom")], "fluorescence per band [-]")]
+    for ax, series, ylabel in panels:
+        for key, label in series:
+            y, e = _values(record[key]), _values(record[f"{key}_stderr"])
+            if key == "tt_fluor" and not np.any(y > 0):
+                continue
+            ax.errorbar(wl, y, yerr=2 * e, fmt=".-", ms=4, capsize=2, label=f"{label} (±2 s.e.)")
+        ax.set_xlabel("band centre [nm]")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        f"{record['name']}: rd = {record['rd_total']:.5g}, "
+        f"fluorescence escaping = {record['rd_fluor_total']:.3g} (top), "
+        f"a = {record['a_total']:.5g} ({record['photons']:,} photons, {record['mode']})", fontsize=9)
+    fig.tight_layout()
+    try:
+        with atomic_writer(path, binary=True) as handle:
+            fig.savefig(handle, format="png", dpi=120)
+    finally:
+        plt.close(fig)

@@ -8,9 +8,9 @@ import math
 
 import numpy as np
 
-from ..transport import TraceResult
+from ..transport import SpectralResult, TraceResult
 from .._atomic import write_text_atomic
-from ._run import Run
+from ._run import Run, SpectralRun
 from ._scenefile import scene_to_dict
 
 _TOTALS = ("rsp", "rd", "a", "tt", "rd_stderr", "a_stderr", "tt_stderr")
@@ -28,6 +28,13 @@ _TALLIES = {
     "a_layer": ((), "-"),
 }
 _AXIS_UNITS = {"r_cm": "cm", "z_cm": "cm", "a_rad": "rad"}
+
+# Spectral records: the SpectralResult fields written per band [-] (fractions of the launched power),
+# and its totals over bands [-].
+SPECTRAL_PER_BAND = ("launched", "rsp", "rd", "rd_stderr", "tt", "tt_stderr", "a", "rd_fluor", "rd_fluor_stderr",
+                     "tt_fluor", "tt_fluor_stderr", "a_fluor", "emitted", "converted", "reconverted", "roulette",
+                     "roulette_fluor")
+SPECTRAL_TOTALS = ("rsp_total", "rd_total", "rd_total_stderr", "tt_total", "tt_total_stderr", "a_total")
 
 
 def tissuefit_version() -> str:
@@ -49,8 +56,20 @@ def _json_array(values) -> list:
     return np.where(np.isfinite(array), array.astype(object), None).tolist()
 
 
-def result_to_dict(run: Run, result: TraceResult, *, seed: int, seconds: float) -> dict:
-    """The JSON-serialisable record of one run.
+def _header(run, photons: int, seed: int, seconds: float) -> dict:
+    return {
+        "name": run.name,
+        "source_file": run.source_file,
+        "tissuefit_version": tissuefit_version(),
+        "seed": int(seed),
+        "photons": photons,
+        "seconds": float(seconds),
+        "photons_per_second": photons / seconds if seconds > 0 else None,
+    }
+
+
+def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult, *, seed: int, seconds: float) -> dict:
+    """The JSON-serialisable record of one run (a spectral run: see `spectral_result_to_dict`).
 
     Keys: `name`, `source_file`, `tissuefit_version`, `seed`; `photons`, `seconds` (wall time
     including compilation), `photons_per_second`; the totals `rsp`, `rd`, `a`, `tt` with
@@ -60,16 +79,10 @@ def result_to_dict(run: Run, result: TraceResult, *, seed: int, seconds: float) 
     (data_spec/scene.md) that reproduces the run; and `mcml: {output, format}` for .mci runs.
     Non-finite numbers are written as null.
     """
+    if isinstance(run, SpectralRun) or isinstance(result, SpectralResult):
+        return spectral_result_to_dict(run, result, seed=seed, seconds=seconds)
     photons = int(result.photons)
-    record: dict = {
-        "name": run.name,
-        "source_file": run.source_file,
-        "tissuefit_version": tissuefit_version(),
-        "seed": int(seed),
-        "photons": photons,
-        "seconds": float(seconds),
-        "photons_per_second": photons / seconds if seconds > 0 else None,
-    }
+    record: dict = _header(run, photons, seed, seconds)
     record.update({key: _json_number(getattr(result, key)) for key in _TOTALS})
     record["steps"] = int(np.sum(np.asarray(result.steps)))
     record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
@@ -92,6 +105,58 @@ def result_to_dict(run: Run, result: TraceResult, *, seed: int, seconds: float) 
     record["scene"] = scene_to_dict(run)
     if run.mco_output is not None:
         record["mcml"] = {"output": run.mco_output, "format": run.mco_format}
+    return record
+
+
+def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: int, seconds: float) -> dict:
+    """The JSON-serialisable record of one spectral run (data_spec/results.md, "Spectral run record").
+
+    Keys: `kind` = "spectral"; `name`, `source_file`, `tissuefit_version`, `seed`, `photons`,
+    `seconds`, `photons_per_second` as for a single-band run; `mode` (the mode traced: "per_band"
+    or "shared"); `bands: {wavelength_nm, width_nm, response, active}`; the totals over bands
+    `rsp_total`, `rd_total`, `rd_total_stderr`, `tt_total`, `tt_total_stderr`, `a_total` and the
+    escaping fluorescence `rd_fluor_total`, `tt_fluor_total` [-]; one list per band for each of
+    `launched`, `rsp`, `rd`, `rd_stderr`, `tt`, `tt_stderr`, `a`, `rd_fluor`, `rd_fluor_stderr`,
+    `tt_fluor`, `tt_fluor_stderr`, `a_fluor`, `emitted`, `converted`, `reconverted`, `roulette`,
+    `roulette_fluor` [-] (fractions of the launched power; `SpectralResult`); `records: {surface,
+    volume: {capacity, count, overflow}, volume_all}`; `steps`, `budget_exhausted`; `units`;
+    `scene` (the resolved scene document); `input_files: [{path, sha256}]`. Non-finite numbers are null.
+    """
+    if not isinstance(run, SpectralRun) or not isinstance(result, SpectralResult):
+        raise TypeError(f"spectral_result_to_dict needs a SpectralRun and a SpectralResult, got "
+                        f"{type(run).__name__} and {type(result).__name__}")
+    photons = int(result.photons)
+    bands = result.bands
+    active = set(result.active)
+    record: dict = {"kind": "spectral", **_header(run, photons, seed, seconds), "mode": result.mode}
+    record["bands"] = {
+        "wavelength_nm": [float(c) for c in bands.centers],
+        "width_nm": [float(w) for w in bands.widths],
+        "response": bands.response,
+        "active": [b in active for b in range(bands.num_bands)],
+    }
+    record.update({key: _json_number(getattr(result, key)) for key in SPECTRAL_TOTALS})
+    record["rd_fluor_total"] = _json_number(np.sum(np.asarray(result.rd_fluor)))
+    record["tt_fluor_total"] = _json_number(np.sum(np.asarray(result.tt_fluor)))
+    record.update({key: _json_array(getattr(result, key)) for key in SPECTRAL_PER_BAND})
+
+    def buffer(records, capacity: int) -> dict:
+        if records is None:
+            return {"capacity": int(capacity), "count": 0, "overflow": 0}
+        return {"capacity": int(capacity), "count": int(records.count), "overflow": int(records.overflow)}
+
+    record["records"] = {
+        "surface": buffer(result.surface_records, run.records.surface),
+        "volume": buffer(result.volume_records, run.records.volume),
+        "volume_all": bool(run.records.volume_all),
+    }
+    record["steps"] = int(np.sum(np.asarray(result.steps)))
+    record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
+    dimensionless = (*SPECTRAL_TOTALS, "rd_fluor_total", "tt_fluor_total", *SPECTRAL_PER_BAND)
+    record["units"] = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
+                       "wavelength_nm": "nm", "width_nm": "nm", "records": "-", **{key: "-" for key in dimensionless}}
+    record["scene"] = scene_to_dict(run)
+    record["input_files"] = [{"path": path, "sha256": digest} for path, digest in run.input_files]
     return record
 
 

@@ -1,14 +1,18 @@
-"""A run: one simulation a file asks for (scene, photon count, tallies, options, seed)."""
+"""A run: one simulation a file asks for (scene, photon count, tallies, options, seed).
+
+`Run` is a single-band simulation (`trace`); `SpectralRun` a multi-spectral one (`trace_spectral`).
+"""
 
 from __future__ import annotations
 
+import json
 from typing import Literal
 
 import equinox as eqx
 
 from .._checks import check_positive_int
-from ..scene import Scene
-from ..transport import TallySpec, TraceOptions
+from ..scene import Scene, SpectralScene
+from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
 
 
 MAX_PHOTONS = 2**32 - 1
@@ -48,3 +52,38 @@ class Run(eqx.Module):
             raise TypeError(f"run.seed = {self.seed!r} must be an integer or None")
         if self.mco_format not in (None, "A", "B"):
             raise ValueError(f"mco_format = {self.mco_format!r}; allowed 'A', 'B' or None")
+
+
+class SpectralRun(eqx.Module):
+    """One multi-spectral simulation read from a scene file that uses spectral features
+    (data_spec/scene.md, "Spectral scenes"); traced by `trace_spectral`.
+
+    Fields:
+    - `name`, `photons`, `options`, `seed`, `source_file`: as in `Run`.
+    - `scene`: the `SpectralScene` (bands, spectral layers, regions, source and its spectrum).
+    - `spectral`: `SpectralOptions` (mode, conversion boost); `records`: `RecordSpec` (photon records).
+    - `document`: the resolved scene part of the file (ambient, bands, layers, regions, source),
+      as JSON text: defaults filled in, file names absolute. `scene_to_dict` adds the run settings
+      from the fields above, so command-line overrides are echoed too.
+    - `input_files`: (absolute path, sha256) of every table and EEM file the scene read.
+
+    Plain data for files and the CLI; use `dataclasses.replace(run, photons=...)` to override a field.
+    """
+
+    name: str = eqx.field(static=True)
+    scene: SpectralScene
+    photons: int = eqx.field(static=True)
+    options: TraceOptions = eqx.field(static=True, default_factory=TraceOptions)
+    spectral: SpectralOptions = eqx.field(static=True, default_factory=SpectralOptions)
+    records: RecordSpec = eqx.field(static=True, default_factory=RecordSpec)
+    seed: int | None = eqx.field(static=True, default=None)
+    source_file: str = eqx.field(static=True, default="<memory>")
+    document: str = eqx.field(static=True, default="{}")
+    input_files: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        check_positive_int("run.photons", self.photons, high=MAX_PHOTONS)
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)):
+            raise TypeError(f"run.seed = {self.seed!r} must be an integer or None")
+        if not isinstance(json.loads(self.document), dict):
+            raise ValueError("SpectralRun.document must be the JSON text of a table (object)")

@@ -3,173 +3,52 @@
 The format is specified in data_spec/scene.md. Reading happens in three steps, each with messages
 that name the file, the field, the value, its unit and the allowed range:
 1. TOML syntax (tomllib; its messages carry line and column);
-2. the schema: unknown keys, missing keys, types, ranges, and non-finite numbers (TOML allows
-   `nan` and `inf`; only a layer thickness may be `inf`);
-3. physics the schema cannot express (only the last layer may be infinite), then the constructors'
-   own checks.
+2. the schema (`_schema`): unknown keys, missing keys, types, ranges, and non-finite numbers (TOML
+   allows `nan` and `inf`; only a layer thickness may be `inf`);
+3. physics the schema cannot express (only the last layer may be infinite; spectral files: see
+   `_spectralfile`), then the constructors' own checks.
+
+A file that uses no spectral feature is a single-band `Run` (`trace`); one that uses any is a
+`SpectralRun` (`trace_spectral`).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.resources
 import json
 import math
 import tomllib
-from collections.abc import Iterable
 from pathlib import Path
 
-import jsonschema
 import numpy as np
 
-from ..scene import FlatBeam, LaunchList, LayeredTissue, PencilBeam, Scene
-from ..transport import TallySpec, TraceOptions
+from ..scene import FlatBeam, LaunchList, LayeredTissue, PencilBeam, Scene, SpectralScene, SpectralTissue
+from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
+from ..transport._spectral import resolve_config
+from . import _spectralfile
 from ._mci import read_mci
-from ._run import Run
+from ._run import Run, SpectralRun
+from ._schema import scene_schema as scene_schema, validate_scene_dict as validate_scene_dict
 
 FORMAT = "tissuefit-scene/1"
 _OPTION_KEYS = ("precision", "launch", "lanes", "roulette_threshold", "roulette_chance",
                 "steps_per_refill", "max_steps", "path_stats")
 _TALLY_KEYS = ("dz", "dr", "nz", "nr", "na")
 _BEAM_KEYS = ("x", "y", "polar_deg", "azimuth_deg")
+_RECORD_KEYS = ("surface", "volume", "volume_all")
 
 
-@functools.cache
-def _schema_text() -> str:
-    return importlib.resources.files(__package__).joinpath("scene.schema.json").read_text(encoding="utf-8")
-
-
-def scene_schema() -> dict:
-    """The JSON Schema of the scene format (a fresh copy of the package's `scene.schema.json`)."""
-    return json.loads(_schema_text())
-
-
-def _finite_type(validator, types, instance, schema):
-    """JSON Schema's `type`, plus: numbers must be finite (TOML has nan and inf; JSON has neither).
-
-    +inf passes where the node carries the annotation `x-allow-inf`.
-    """
-    yield from jsonschema.Draft202012Validator.VALIDATORS["type"](validator, types, instance, schema)
-    if isinstance(instance, float) and not math.isfinite(instance):
-        if not (instance > 0 and schema.get("x-allow-inf")):
-            yield jsonschema.ValidationError("number is not finite", validator="finite")
-
-
-_Validator = jsonschema.validators.extend(jsonschema.Draft202012Validator, {"type": _finite_type})
-
-
-@functools.cache
-def _validator():
-    return _Validator(scene_schema())
-
-
-def _path(parts: Iterable) -> str:
-    text = ""
-    for part in parts:
-        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
-    return text or "(top level)"
-
-
-def _value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        return f"{v:g}"
-    if isinstance(v, (str, list, dict)):
-        return json.dumps(v)
-    return str(v)
-
-
-def _interval(node: dict) -> str:
-    """The allowed interval of a numeric schema node, with its unit, e.g. '[0, inf) 1/cm'."""
-    integer = "integer" in _types(node)
-
-    def bound(key):
-        return str(int(node[key])) if integer else _value(float(node[key]))
-
-    if "exclusiveMinimum" in node:
-        lo = f"({bound('exclusiveMinimum')}"
-    elif "minimum" in node:
-        lo = f"[{bound('minimum')}"
-    else:
-        lo = "(-inf"
-    if "exclusiveMaximum" in node:
-        hi = f"{bound('exclusiveMaximum')})"
-    elif "maximum" in node:
-        hi = f"{bound('maximum')}]"
-    else:
-        hi = "inf]" if node.get("x-allow-inf") else "inf)"
-    text = f"{lo}, {hi}" + (" (integer)" if integer else "")
-    unit = node.get("x-unit", "-")
-    return text if unit == "-" else f"{text} {unit}"
-
-
-def _types(node: dict) -> list[str]:
-    t = node.get("type", [])
-    return [t] if isinstance(t, str) else list(t)
-
-
-def _describe(error: jsonschema.ValidationError) -> str:
-    """One human sentence for a schema error: field path, value, unit and allowed range."""
-    where = _path(error.absolute_path)
-    node, value, kind = error.schema, error.instance, error.validator
-    if kind == "finite" and math.isnan(value):
-        return f"{where} = nan is not a number; allowed {_interval(node)}"
-    if kind in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "finite"):
-        return f"{where} = {_value(value)} is out of range; allowed {_interval(node)}"
-    if kind == "type":
-        expected = " or ".join({"number": "a number", "integer": "an integer", "string": "a string",
-                                "boolean": "true or false", "array": "a list", "object": "a table"}.get(t, t)
-                               for t in _types(node))
-        detail = f"; allowed {_interval(node)}" if {"number", "integer"} & set(_types(node)) else ""
-        return f"{where} = {_value(value)} has the wrong type; expected {expected}{detail}"
-    if kind == "required":
-        missing = [k for k in error.validator_value if k not in value]
-        props = node.get("properties", {})
-        parts = []
-        for key in missing:
-            description = props[key].get("description", "") if isinstance(props.get(key), dict) else ""
-            parts.append(f"{key!r}" + (f" ({description.rstrip('.')})" if description else ""))
-        return f"{where}: missing required key {', '.join(parts)}"
-    if kind == "additionalProperties":
-        allowed = list(node.get("properties", {}))
-        extra = [k for k in value if k not in allowed]
-        return f"{where}: unknown key {', '.join(map(repr, extra))}; allowed keys: {', '.join(allowed)}"
-    if kind in ("enum", "const"):
-        options = error.validator_value if kind == "enum" else [error.validator_value]
-        return f"{where} = {_value(value)} is not allowed; allowed: {', '.join(_value(o) for o in options)}"
-    if kind == "pattern" and node.get("x-allow-inf"):
-        return f'{where} = {_value(value)} is not allowed; allowed a number in {_interval(node)} or "inf"'
-    if kind == "pattern":
-        return f"{where} = {_value(value)} does not match the pattern {node.get('pattern')}"
-    if kind == "minItems":
-        return f"{where}: needs at least {error.validator_value} entries, found {len(value)}"
-    if kind == "maxItems":
-        return f"{where}: allows at most {error.validator_value} entries, found {len(value)}"
-    if kind == "uniqueItems":
-        return f"{where}: entries must be unique; found {_value(value)}"
-    if kind == "minLength":
-        return f"{where}: must not be empty"
-    return f"{where}: {error.message}"
-
-
-def validate_scene_dict(doc: dict, *, source_file: str) -> None:
-    """Raise `ValueError` listing every schema violation of `doc`, one line each, prefixed by the file.
-
-    Errors come in the schema's order (fields as data_spec/scene.md lists them); duplicates are dropped.
-    """
-    messages = list(dict.fromkeys(_describe(e) for e in _validator().iter_errors(doc)))
-    if messages:
-        raise ValueError("\n".join(f"{source_file}: {m}" for m in messages))
-
-
-def scene_from_dict(doc: dict, *, source_file: str = "<dict>", default_name: str = "scene") -> Run:
-    """Validate a scene document (parsed TOML or JSON) and build its Run.
+def scene_from_dict(doc: dict, *, source_file: str = "<dict>", default_name: str = "scene",
+                    base_dir=None) -> Run | SpectralRun:
+    """Validate a scene document (parsed TOML or JSON) and build its Run, or its SpectralRun when
+    the document uses a spectral feature (data_spec/scene.md, "Spectral scenes").
 
     Arguments:
     - `doc`: the document, in the structure of data_spec/scene.md.
     - `source_file`: the file name used in messages and stored in the Run.
     - `default_name`: the Run's name when the document has no `name`.
+    - `base_dir`: folder that relative file names in the document (spectrum, absorber and EEM
+      tables) are relative to; default the folder of `source_file`, or the working directory
+      when `source_file` is not a path (`"<dict>"`).
     Raises `ValueError` with file, field, value, unit and allowed range.
     """
     if not isinstance(doc, dict):
@@ -183,6 +62,10 @@ def scene_from_dict(doc: dict, *, source_file: str = "<dict>", default_name: str
                 f"{source_file}: layers[{i}].thickness = inf; only the last layer may be semi-infinite; "
                 "allowed (0, inf) cm for the layers above it"
             )
+    if _spectralfile.is_spectral(doc):
+        if base_dir is None:
+            base_dir = Path.cwd() if source_file.startswith("<") else Path(source_file).parent
+        return _spectral_run(doc, source_file=source_file, default_name=default_name, base_dir=Path(base_dir))
     try:
         ambient = doc.get("ambient", {})
         tissue = LayeredTissue(
@@ -193,7 +76,7 @@ def scene_from_dict(doc: dict, *, source_file: str = "<dict>", default_name: str
             thickness=[_thickness(layer["thickness"]) for layer in layers],
             **{k: ambient[k] for k in ("n_above", "n_below") if k in ambient},
         )
-        scene = Scene(tissue=tissue, source=_source(doc.get("source", {"kind": "pencil"})))
+        scene = Scene(tissue=tissue, source=_source(doc.get("source", {})))
         run = doc["run"]
         tallies = doc.get("tallies", {})
         spec = TallySpec(
@@ -225,7 +108,8 @@ def _thickness(value) -> float:
 
 
 def _source(doc: dict):
-    kind = doc["kind"]
+    """The source geometry of a `[source]` table (its `spectrum`, if any, is read by `_spectralfile`)."""
+    kind = doc.get("kind", "pencil")
     if kind == "pencil":
         return PencilBeam(**{k: doc[k] for k in _BEAM_KEYS if k in doc})
     if kind == "flat":
@@ -233,8 +117,87 @@ def _source(doc: dict):
     return LaunchList(position=doc["position"], direction=doc["direction"])
 
 
-def read_scene(path) -> Run:
-    """Read a scene file (TOML, format "tissuefit-scene/1"; see data_spec/scene.md).
+def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: Path) -> SpectralRun:
+    """The SpectralRun of a schema-valid document that uses spectral features. Every problem the
+    schema cannot see is collected (one line each, prefixed by the file) before anything runs."""
+
+    def refuse(problems):
+        raise ValueError("\n".join(f"{source_file}: {m}" for m in problems))
+
+    run = doc["run"]
+    ctx = _spectralfile.Context(base=base_dir)
+    if "tallies" in doc:
+        ctx.problems.append("tallies: not available for spectral scenes (they report totals per band and photon "
+                            "records); remove [tallies] or the spectral keys")
+    if run.get("path_stats"):
+        ctx.problems.append("run.path_stats = true is not available for spectral scenes; allowed: false")
+    bands_echo = _spectralfile.build_bands(ctx, doc.get("bands"))
+    if ctx.bands is None:
+        refuse(ctx.problems)
+    source_doc = doc.get("source", {})
+    spectrum = _spectralfile.build_spectrum(ctx, source_doc.get("spectrum"))
+    layers = doc["layers"]
+    thickness = [_thickness(layer["thickness"]) for layer in layers]
+    faces = np.concatenate([[0.0], np.cumsum(thickness)])
+    depths = [(float(top), float(bottom)) for top, bottom in zip(faces[:-1], faces[1:])]
+    optics = [_spectralfile.build_optics(ctx, layer, f"layers[{i}]") for i, layer in enumerate(layers)]
+    regions = [_spectralfile.build_region(ctx, region, f"regions[{k}]", depths)
+               for k, region in enumerate(doc.get("regions", []))]
+    if ctx.problems:
+        refuse(ctx.problems)
+    try:
+        ambient = doc.get("ambient", {})
+        tissue = SpectralTissue(
+            [o[0] for o in optics], n=[layer["n"] for layer in layers], thickness=thickness, bands=ctx.bands,
+            regions=[r[0] for r in regions], **{k: ambient[k] for k in ("n_above", "n_below") if k in ambient},
+        )
+        _check_semi_infinite_glass(tissue)
+        scene = SpectralScene(tissue, source=_source(source_doc), spectrum=spectrum[0])
+        options = TraceOptions(**{k: _int_if(k, run[k]) for k in _OPTION_KEYS if k in run})
+        spectral = SpectralOptions(mode=run.get("spectral_mode", "auto"),
+                                   conversion_boost=float(run.get("conversion_boost", 1.0)))
+        records_doc = doc.get("records", {})
+        records = RecordSpec(**{k: records_doc[k] if k == "volume_all" else int(records_doc[k])
+                                for k in _RECORD_KEYS if k in records_doc})
+        resolve_config(scene, options, spectral, records)  # checks the mode against the scene's optics
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{source_file}: {err}") from None
+    geometry = tissue.geometry
+    document = {
+        "format": FORMAT,
+        "name": doc.get("name", default_name),
+        "ambient": {"n_above": float(geometry.n_above), "n_below": float(geometry.n_below)},
+        "bands": bands_echo,
+        "layers": [{"n": float(layer["n"]), **o[1], "thickness": "inf" if math.isinf(d) else float(d)}
+                   for layer, o, d in zip(layers, optics, thickness)],
+        "regions": [r[1] for r in regions],
+        "source": {**_source_to_dict(scene.source), "spectrum": spectrum[1]},
+    }
+    return SpectralRun(
+        name=document["name"], scene=scene, photons=int(run["photons"]), options=options, spectral=spectral,
+        records=records, seed=int(run["seed"]) if "seed" in run else None, source_file=source_file,
+        document=json.dumps(document), input_files=tuple(sorted(ctx.files.items())),
+    )
+
+
+def _check_semi_infinite_glass(tissue: SpectralTissue) -> None:
+    """`LayeredTissue`'s check, band by band: a semi-infinite last layer must absorb or scatter in every band."""
+    last = tissue.num_layers - 1
+    if not math.isinf(float(np.asarray(tissue.geometry.thickness)[last])):
+        return
+    mua, mus, _ = (np.asarray(a) for a in tissue.properties())
+    glass = np.nonzero((mua[last] == 0.0) & (mus[last] == 0.0))[0]
+    if glass.size:
+        raise ValueError(
+            f"layers[{last}]: the last layer is semi-infinite (thickness = inf cm) and neither absorbs nor scatters "
+            f"at {tissue.bands.centers[glass[0]]:g} nm (mua = mus = 0 1/cm); photons would travel forever. Give it a "
+            "finite thickness in (0, inf) cm or mua + mus > 0 1/cm in every band."
+        )
+
+
+def read_scene(path) -> Run | SpectralRun:
+    """Read a scene file (TOML, format "tissuefit-scene/1"; see data_spec/scene.md): a `Run`, or a
+    `SpectralRun` when the file uses spectral features. File names inside it are relative to its folder.
 
     The Run's name defaults to the file name without extension. Raises `ValueError` naming the file,
     the field, the value, its unit and the allowed range for any problem, before anything runs.
@@ -250,7 +213,7 @@ def read_scene(path) -> Run:
     return scene_from_dict(doc, source_file=name, default_name=Path(path).stem)
 
 
-def load_runs(path) -> list[Run]:
+def load_runs(path) -> list[Run | SpectralRun]:
     """The runs a file describes: `.mci` → `read_mci` (all runs); `.toml` → `[read_scene]`."""
     suffix = Path(path).suffix.lower()
     if suffix == ".mci":
@@ -260,13 +223,16 @@ def load_runs(path) -> list[Run]:
     raise ValueError(f"{path}: unknown file type {suffix or '(none)'!r}; allowed .toml (scene) or .mci (MCML input)")
 
 
-def scene_to_dict(run: Run) -> dict:
+def scene_to_dict(run: Run | SpectralRun) -> dict:
     """The resolved scene and config of `run` as a scene document (JSON-serialisable).
 
     The result is a valid "tissuefit-scene/1" document: `scene_from_dict(scene_to_dict(run))`
     rebuilds the same run. Every output file echoes it. A semi-infinite thickness is written as
-    the string "inf"; a seed of None and an unlimited `max_steps` are left out.
+    the string "inf"; a seed of None and an unlimited `max_steps` are left out. A SpectralRun's
+    document has every default filled in and absolute file names (`SpectralRun.document`).
     """
+    if isinstance(run, SpectralRun):
+        return _spectral_to_dict(run)
     tissue = run.scene.tissue
 
     def floats(a) -> list[float]:
@@ -277,11 +243,7 @@ def scene_to_dict(run: Run) -> dict:
         for n, mua, mus, g, d in zip(floats(tissue.n), floats(tissue.mua), floats(tissue.mus),
                                      floats(tissue.g), floats(tissue.thickness))
     ]
-    options = run.options
-    run_doc = {"photons": int(run.photons)}
-    if run.seed is not None:
-        run_doc["seed"] = int(run.seed)
-    run_doc.update({k: getattr(options, k) for k in _OPTION_KEYS if getattr(options, k) is not None})
+    run_doc = _run_to_dict(run)
     spec = run.tallies
     return {
         "format": FORMAT,
@@ -292,6 +254,22 @@ def scene_to_dict(run: Run) -> dict:
         "run": run_doc,
         "tallies": {"names": list(spec.names), **{k: getattr(spec, k) for k in _TALLY_KEYS}},
     }
+
+
+def _run_to_dict(run: Run | SpectralRun) -> dict:
+    doc = {"photons": int(run.photons)}
+    if run.seed is not None:
+        doc["seed"] = int(run.seed)
+    doc.update({k: getattr(run.options, k) for k in _OPTION_KEYS if getattr(run.options, k) is not None})
+    return doc
+
+
+def _spectral_to_dict(run: SpectralRun) -> dict:
+    doc = json.loads(run.document)
+    doc["run"] = {**_run_to_dict(run), "spectral_mode": run.spectral.mode,
+                  "conversion_boost": float(run.spectral.conversion_boost)}
+    doc["records"] = {k: getattr(run.records, k) for k in _RECORD_KEYS}
+    return doc
 
 
 def _source_to_dict(source) -> dict:
