@@ -270,7 +270,7 @@ def test_no_fluorophore_means_no_conversion_code():
     assert set(lit.active_bands()) > set(violet.active_bands())  # PpIX emission reaches the red bands
 
 
-def test_auto_mode_follows_the_spread_of_the_properties():
+def test_auto_mode_shares_paths_wherever_they_can_serve():
     from tissuefit.transport._spectral import resolve_config
 
     def mode(scene):
@@ -280,7 +280,9 @@ def test_auto_mode_follows_the_spread_of_the_properties():
                                                n=[1.1], thickness=[INF]))
     assert mode(paper) == "shared"
     blood = tf.LayerOptics([tf.Blood(fraction=0.02, saturation=0.7)], tf.PowerLawScattering(18.9, 1.286, 0.9))
-    assert mode(tf.SpectralScene(tf.SpectralTissue([blood], n=[1.37], thickness=[INF]))) == "per_band"
+    assert mode(tf.SpectralScene(tf.SpectralTissue([blood], n=[1.37], thickness=[INF]))) == "shared"
+    uneven = tf.LayerOptics([tf.ConstantAbsorption(1.0)], tf.ConstantScattering(50.0, np.linspace(0.8, 0.9, 21)))
+    assert mode(tf.SpectralScene(tf.SpectralTissue([uneven], n=[1.37], thickness=[INF]))) == "per_band"
 
 
 def test_changing_parameters_does_not_recompile(key):
