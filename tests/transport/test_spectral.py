@@ -248,7 +248,7 @@ def test_no_fluorophore_means_no_conversion_code():
     """Skip what is not needed: the compiled step of a scene without fluorophores draws no
     conversion numbers and has no conversion loop; bands without light carry no weight."""
     from tissuefit.transport._spectral import SpectralKernel, resolve_config
-    from tissuefit.transport import _spectral_lanes as S
+    from tissuefit.transport import _spectral_state as S
     import jax.numpy as jnp
 
     def step_jaxpr(scene):

@@ -255,6 +255,48 @@ def _expand(mask: Array, like: Array) -> Array:
     return mask.reshape(mask.shape + (1,) * (like.ndim - 1))
 
 
+def free_path(lanes, medium, mut, xi_step):
+    """MCML's hop test: a free path s [cm] (or the rest of the carried one, `sleft`) against the
+    current layer's faces. Returns (turbid, safe_mut, s, face, db): db is the distance to the
+    face the photon moves towards (depth `face` below the layer's top; inf when parallel).
+
+    Depth z is measured from the current layer's top face, so a thin layer far below the surface
+    keeps its full resolution in float32 (absolute depths would round its faces together)."""
+    turbid = mut > 0
+    safe_mut = jnp.where(turbid, mut, 1.0)
+    tau = jnp.where(lanes.sleft > 0, lanes.sleft, -jnp.log(xi_step))
+    s = jnp.where(turbid, tau / safe_mut, jnp.inf)
+    uz = lanes.uz
+    face = jnp.where(uz > 0, _pick(medium.thickness, lanes.layer), 0.0)
+    db = jnp.where(uz != 0, (face - lanes.z) / jnp.where(uz != 0, uz, 1.0), jnp.inf)
+    return turbid, safe_mut, s, face, db
+
+
+def cross_or_not(lanes, medium, face, xi_a):
+    """MCML's cross-or-not at the face a photon has reached: Fresnel reflection (all or none) or
+    Snell refraction into the next layer or out of the tissue.
+
+    Returns ((bx, by, bz) the new direction, cos_t the refracted cosine (the exit cosine outside
+    the tissue), reflect, leave_top, leave_bottom, b_layer the layer after, b_z the depth in it)."""
+    layer, uz = lanes.layer, lanes.uz
+    layers = medium.thickness.shape[0]
+    up = uz < 0
+    n_here = _pick(medium.n_ext, layer + 1)
+    n_next = jnp.where(up, _pick(medium.n_ext, layer), _pick(medium.n_ext, layer + 2))
+    refl, cos_t = phys.fresnel(n_here, n_next, jnp.abs(uz))
+    reflect = xi_a <= refl
+    bx, by, bz = phys.refract(lanes.ux, lanes.uy, uz, n_here, n_next, cos_t)
+    bx = jnp.where(reflect, lanes.ux, bx)
+    by = jnp.where(reflect, lanes.uy, by)
+    bz = jnp.where(reflect, -uz, bz)
+    leave_top = ~reflect & up & (layer == 0)
+    leave_bottom = ~reflect & ~up & (layer == layers - 1)
+    b_layer = jnp.clip(jnp.where(reflect, layer, layer + jnp.where(up, -1, 1)), 0, layers - 1)
+    # after a crossing: the face just crossed, in the new layer's coordinates
+    b_z = jnp.where(reflect, face, jnp.where(up, _pick(medium.thickness, b_layer), 0.0))
+    return (bx, by, bz), cos_t, reflect, leave_top, leave_bottom, b_layer, b_z
+
+
 def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options: TraceOptions):
     """One MCML step on every lane: hop to the next interaction or boundary, then either
     cross-or-not at the boundary or drop (implicit capture) and spin; then roulette."""
@@ -266,23 +308,14 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     mus = _pick(medium.mus, layer)
     mut = mua + mus
     g = _pick(medium.g, layer)
-    n_here = _pick(medium.n_ext, layer + 1)
     xi_step, rng = _rng.next_uniform(lanes.rng, dtype)
     xi_a, rng = _rng.next_uniform(rng, dtype)
     xi_b, rng = _rng.next_uniform(rng, dtype)
     xi_c, rng = _rng.next_uniform(rng, dtype)
 
     # hop: sample a step (or finish the carried one) and test it against the layer's faces
-    turbid = mut > 0
-    safe_mut = jnp.where(turbid, mut, 1.0)
-    tau = jnp.where(lanes.sleft > 0, lanes.sleft, -jnp.log(xi_step))
-    s = jnp.where(turbid, tau / safe_mut, jnp.inf)
+    turbid, safe_mut, s, face, db = free_path(lanes, medium, mut, xi_step)
     uz = lanes.uz
-    # Depth z is measured from the current layer's top face, so a thin layer far below the surface
-    # keeps its full resolution in float32 (absolute depths would round its faces together).
-    thickness = _pick(medium.thickness, layer)
-    face = jnp.where(uz > 0, thickness, 0.0)
-    db = jnp.where(uz != 0, (face - lanes.z) / jnp.where(uz != 0, uz, 1.0), jnp.inf)
     hit = s > db
     stuck = ~hit & ~turbid  # travelling parallel to the faces of a glass layer: never arrives
     run = jnp.where(hit, db, s)
@@ -293,21 +326,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     sleft = jnp.where(hit & turbid, (s - db) * mut, 0.0)
 
     # cross or not (boundary branch)
-    up = uz < 0
-    n_next = jnp.where(up, _pick(medium.n_ext, layer), _pick(medium.n_ext, layer + 2))
-    refl, cos_t = phys.fresnel(n_here, n_next, jnp.abs(uz))
-    reflect = xi_a <= refl
-    bx, by, bz = phys.refract(lanes.ux, lanes.uy, uz, n_here, n_next, cos_t)
-    bx = jnp.where(reflect, lanes.ux, bx)
-    by = jnp.where(reflect, lanes.uy, by)
-    bz = jnp.where(reflect, -uz, bz)
-    leave_top = ~reflect & up & (layer == 0)
-    leave_bottom = ~reflect & ~up & (layer == layers - 1)
-    b_layer = jnp.where(reflect, layer, layer + jnp.where(up, -1, 1))
-    b_layer = jnp.clip(b_layer, 0, layers - 1)
-    # after a crossing: the face just crossed, in the new layer's coordinates
-    entered_from_below = _pick(medium.thickness, b_layer)
-    b_z = jnp.where(reflect, face, jnp.where(up, entered_from_below, 0.0))
+    (bx, by, bz), cos_t, _, leave_top, leave_bottom, b_layer, b_z = cross_or_not(lanes, medium, face, xi_a)
 
     # drop and spin (interaction branch). The weight kept is w * albedo, so that mus = 0 leaves
     # exactly 0 (w - w mua / mut can leave an ulp that roulette then revives in float32) and mua = 0

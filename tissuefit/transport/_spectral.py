@@ -20,7 +20,9 @@ from .._checks import check_positive_int, check_range, is_concrete
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
 from ._records import PhotonRecords, RecordSpec
-from ._spectral_lanes import SpectralConfig, band_weights, harvest, idle_lanes, medium_arrays, refill, step, zeros_acc
+from ._spectral_lanes import harvest, refill, step
+from ._spectral_state import SpectralConfig, idle_lanes, medium_arrays, zeros_acc
+from ._spectral_weights import band_weights
 from ._trace import MAX_PHOTONS, TraceState, run_lanes
 
 Mode = Literal["auto", "per_band", "shared"]

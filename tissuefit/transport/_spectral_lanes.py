@@ -32,18 +32,16 @@ carried across (MCML's sleft) and the photon continues with the region's coeffic
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _physics as phys
 from . import _rng
-from ._config import TraceOptions
-from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, launch_photons, launch_uniforms
-from ._records import RecordSpec
+from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
+from ._spectral_state import _Acc, _Buffer, _Lanes, _Medium, SpectralConfig
+from ._spectral_weights import _convert_batch, _convert_batch_per_band, _flush_per_band, _sample_index, band_weights
+
 
 NUDGE = 1e-6
 """Depth [cm] past a layer face at which a photon's new medium (a region or the layer) is looked up."""
@@ -51,180 +49,6 @@ NUDGE = 1e-6
 MIN_CHORD = 4 * NUDGE
 """Shortest path through a region [cm] that enters it; grazing rays with shorter chords pass by
 (a ray grazing the surface would otherwise enter and leave without moving, in float32, for ever)."""
-
-CONVERSION_BATCH = 128
-"""Lanes whose conversions a shared-path step evaluates in one gathered batch (more: all lanes)."""
-
-
-class SpectralConfig(eqx.Module):
-    """Everything static about a spectral trace (part of the jit cache key)."""
-
-    mode: str = eqx.field(static=True)
-    num_bands: int = eqx.field(static=True)
-    active: tuple[int, ...] = eqx.field(static=True)
-    fluorescent: bool = eqx.field(static=True)
-    num_layers: int = eqx.field(static=True)
-    num_media: int = eqx.field(static=True)
-    boost: float = eqx.field(static=True)
-    records: RecordSpec = eqx.field(static=True)
-    options: TraceOptions = eqx.field(static=True)
-
-    @property
-    def shared(self) -> bool:
-        return self.mode == "shared"
-
-    @property
-    def slots(self) -> int:
-        return len(self.active)
-
-
-class _Lanes(NamedTuple):
-    x: Array
-    y: Array
-    z: Array  # depth below the current layer's top face [cm]
-    ux: Array
-    uy: Array
-    uz: Array
-    w: Array  # per_band: the photon's weight; shared: the carrier's weight W
-    spectrum: Array | None  # shared: s [lanes, slots]
-    path: Array | None  # shared: L [lanes, media] since the last reset [cm]
-    hits: Array | None  # shared: n [lanes, media] since the last reset
-    sleft: Array
-    layer: Array
-    medium: Array
-    band: Array  # per_band: band index; shared: carrier slot (index into `active`)
-    converted: Array
-    status: Array
-    pid: Array
-    rng: tuple
-    heat: Array  # per_band: heat in the current band since the last conversion
-    roulette: Array  # per_band: roulette's net weight in the current band since the last conversion
-    steps: Array
-
-
-class _Buffer(NamedTuple):
-    position: Array  # [cap, 3]
-    direction: Array
-    w: Array  # [cap]: the weight (per_band) or W (shared)
-    spectrum: Array | None  # [cap, slots]
-    path: Array | None  # [cap, media]
-    hits: Array | None
-    band: Array
-    converted: Array
-    photon: Array
-    count: Array
-    overflow: Array
-
-
-class _Acc(NamedTuple):
-    next_pid: Array
-    rsp: Array
-    totals: Array  # [2, 2]: (rd, tt) summed over bands x (sum, sum of squares) over photons
-    escape: Array  # [bands, 4, 2]: (rd, tt, rd_fluor, tt_fluor) x (sum, sum of squares)
-    deposit: Array  # [bands, 4]: heat, heat of converted photons, roulette, roulette of converted photons
-    flux: Array  # [bands, 4]: launched, emitted, converted from (first conversions), reconverted from
-    steps: Array
-    surface: _Buffer | None
-    volume: _Buffer | None
-
-
-class _Medium(NamedTuple):
-    n_ext: Array
-    thickness: Array
-    z0: Array
-    mua: Array  # [media * bands], flat: index medium * bands + band
-    mus: Array
-    g: Array
-    power: Array  # [bands] source band powers (sum 1)
-    conv: Array | None  # [media * bands, bands]
-    psum: Array | None  # [media * bands]: total conversion probability
-    q: Array | None  # shared: [media] conversion sampling probability
-    log_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mus_k / mus_c)
-    log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
-    dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
-
-
-def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
-    t = scene.tissue
-    geo = t.geometry
-    mua, mus, g = t.properties()
-    nm, nb = mua.shape
-    conv = psum = q = log_ratio = log_mut_ratio = dmut = None
-    if config.fluorescent:
-        full = t.conversion()  # [media, bands, bands]
-        conv = full.reshape(nm * nb, nb).astype(dtype)
-        psum = full.sum(-1)
-    if config.shared:
-        act = jnp.asarray(config.active)
-        mua_a, mus_a = mua[:, act], mus[:, act]
-        both = (mus_a[:, None, :] > 0) & (mus_a[:, :, None] > 0)
-        log_ratio = jnp.where(both, jnp.log(jnp.where(both, mus_a[:, None, :], 1.0) / jnp.where(both, mus_a[:, :, None], 1.0)), 0.0)
-        mut_a = mua_a + mus_a
-        dmut = mut_a[:, None, :] - mut_a[:, :, None]
-        turbid = (mut_a[:, None, :] > 0) & (mut_a[:, :, None] > 0)
-        log_mut_ratio = jnp.where(
-            turbid, jnp.log(jnp.where(turbid, mut_a[:, None, :], 1.0) / jnp.where(turbid, mut_a[:, :, None], 1.0)), 0.0
-        )
-        log_ratio, log_mut_ratio, dmut = (a.astype(dtype) for a in (log_ratio, log_mut_ratio, dmut))
-        if config.fluorescent:
-            p = psum[:, act]
-            denom = mus_a / jnp.where(mut_a > 0, mut_a, 1.0) + p
-            q_a = jnp.where(denom > 0, p / jnp.where(denom > 0, denom, 1.0), 0.0)
-            q = jnp.minimum(1.0, config.boost * q_a.max(1)).astype(dtype)
-    return _Medium(
-        n_ext=jnp.concatenate([geo.n_above[None], geo.n, geo.n_below[None]]).astype(dtype),
-        thickness=geo.thickness.astype(dtype), z0=geo.z0.astype(dtype),
-        mua=mua.reshape(-1).astype(dtype), mus=mus.reshape(-1).astype(dtype), g=g.reshape(-1).astype(dtype),
-        power=scene.band_power().astype(dtype), conv=conv,
-        psum=None if psum is None else psum.reshape(-1).astype(dtype), q=q, log_ratio=log_ratio,
-        log_mut_ratio=log_mut_ratio, dmut=dmut,
-    )
-
-
-def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:
-    shared = config.shared
-    return _Buffer(
-        position=jnp.zeros((capacity, 3), dtype), direction=jnp.zeros((capacity, 3), dtype),
-        w=jnp.zeros(capacity, dtype),
-        spectrum=jnp.zeros((capacity, config.slots), dtype) if shared else None,
-        path=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
-        hits=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
-        band=jnp.zeros(capacity, jnp.int32), converted=jnp.zeros(capacity, bool),
-        photon=jnp.zeros(capacity, jnp.int64), count=jnp.zeros((), jnp.int64), overflow=jnp.zeros((), jnp.int64),
-    )
-
-
-def zeros_acc(config: SpectralConfig, capacity_share: int, dtype) -> _Acc:
-    """Accumulators of one device; each device keeps `1/capacity_share` of every record buffer."""
-    f64 = jnp.float64
-    nb = config.num_bands
-    rec = config.records
-
-    def buf(capacity):
-        return _empty_buffer(-(-capacity // capacity_share), config, dtype) if capacity else None
-
-    return _Acc(
-        next_pid=jnp.zeros((), jnp.int64), rsp=jnp.zeros((), f64), totals=jnp.zeros((2, 2), f64),
-        escape=jnp.zeros((nb, 4, 2), f64), deposit=jnp.zeros((nb, 4), f64), flux=jnp.zeros((nb, 4), f64),
-        steps=jnp.zeros((), jnp.int64), surface=buf(rec.surface), volume=buf(rec.volume),
-    )
-
-
-def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
-    zf = jnp.zeros(lanes, dtype)
-    zi = jnp.zeros(lanes, jnp.int32)
-    zu = jnp.zeros(lanes, jnp.uint32)
-    shared = config.shared
-    per_medium = (lambda: jnp.zeros((lanes, config.num_media), dtype)) if shared else (lambda: None)
-    return _Lanes(
-        x=zf, y=zf, z=zf, ux=zf, uy=zf, uz=zf, w=zf,
-        spectrum=jnp.zeros((lanes, config.slots), dtype) if shared else None,
-        path=per_medium(), hits=per_medium(), sleft=zf,
-        layer=zi, medium=zi, band=zi, converted=jnp.zeros(lanes, bool),
-        status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
-        heat=zf, roulette=zf, steps=zi,
-    )
-
 
 # ---------------------------------------------------------------------------------------------
 # Helpers
@@ -249,13 +73,6 @@ def _record_rows(lanes: _Lanes, position, direction, band) -> dict:
                 hits=lanes.hits, band=band, converted=lanes.converted, photon=lanes.pid)
 
 
-def _sample_index(cdf_rows: Array, xi: Array) -> Array:
-    """Per row, the first index k with xi * cdf[-1] <= cdf[k] (rows of cumulative sums)."""
-    target = xi * cdf_rows[:, -1]
-    k = jnp.sum((cdf_rows < target[:, None]).astype(jnp.int32), axis=1, dtype=jnp.int32)
-    return jnp.minimum(k, cdf_rows.shape[1] - 1)
-
-
 def _medium_at(regions, offsets, layer: Array, x, y, zabs, u) -> Array:
     """Medium of points just inside layer `layer`: the region medium of that layer containing them
     (a voxel grid's voxel), else the layer. `offsets`: each region's first medium index.
@@ -278,128 +95,6 @@ def _isotropic(xi_a: Array, xi_b: Array) -> tuple[Array, Array, Array]:
     sin_t = jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
     psi = 2.0 * jnp.pi * xi_b
     return sin_t * jnp.cos(psi), sin_t * jnp.sin(psi), cos_t
-
-
-def band_weights(w, spectrum, path, hits, carrier, medium: _Medium) -> Array:
-    """Shared paths: every band's weight [n, slots] from the carrier weight and the path statistics.
-
-    The carrier of a path segment (since launch or the last conversion) is drawn with
-    probabilities proportional to `spectrum`, so the segment is a sample of the mixture of the
-    bands' path densities. Each band's weight is its contribution over that mixture density (the
-    balance heuristic of multiple importance sampling; Veach 1997, and the hero-wavelength
-    sampling of Wilkie et al. 2014):
-
-        w_k = W s_k r_k * sum_c s_c / sum_c s_c rho_c
-
-    with r_k = prod_m (mus_mk/mus_ma)^(n_m) exp(-(mut_mk - mut_ma) L_m), the weight ratio of band
-    k to the carrier a, and rho_c = prod_m (mut_mc/mut_ma)^(n_m) exp(-(mut_mc - mut_ma) L_m), the
-    ratio of band c's path density to the carrier's. The weights are bounded (w_k <= W s_k r_k /
-    (pi_k rho_k)), unlike the plain ratio W s_k r_k, whose variance is infinite once a band's mut
-    is below half the carrier's. `carrier` [n] is the carrier slot.
-    """
-    log_r = jnp.zeros_like(spectrum)
-    log_rho = jnp.zeros_like(spectrum)
-    for m in range(path.shape[1]):
-        n_m, l_m = hits[:, m : m + 1], path[:, m : m + 1]
-        attenuation = l_m * medium.dmut[m][carrier]
-        log_r = log_r + n_m * medium.log_ratio[m][carrier] - attenuation
-        log_rho = log_rho + n_m * medium.log_mut_ratio[m][carrier] - attenuation
-    # shift by the largest exponent so that the mixture's sum neither overflows nor underflows
-    shift = jnp.max(log_rho, axis=1, keepdims=True)
-    mixture = jnp.sum(spectrum * jnp.exp(log_rho - shift), axis=1, keepdims=True)
-    total = jnp.sum(spectrum, axis=1, keepdims=True)
-    safe = jnp.where(mixture > 0, mixture, 1.0)
-    return jnp.where(mixture > 0, w[:, None] * spectrum * jnp.exp(log_r - shift) * total / safe, 0.0)
-
-
-def _emission_shared(lanes: _Lanes, medium: _Medium, config: SpectralConfig, rows, xi_e):
-    """For the lanes `rows` (indices; out of range = none) that convert at this step: their new
-    spectrum (emitted weight / q), new carrier slot, and the weight booked into and out of each band."""
-    act = jnp.asarray(config.active)
-    nb = config.num_bands
-    take = lambda a: jnp.take(a, rows, axis=0, mode="clip")  # noqa: E731
-    carrier, med = take(lanes.band), take(lanes.medium)
-    w = band_weights(take(lanes.w), take(lanes.spectrum), take(lanes.path), take(lanes.hits), carrier, medium)
-    mut = (medium.mua + medium.mus).reshape(-1, nb)[:, act][med]  # [n, slots]
-    mut_c = jnp.take_along_axis(mut, carrier[:, None], 1)
-    scaled = w * mut / jnp.where(mut_c > 0, mut_c, 1.0)  # weight interacting, under each band's own density
-    conv = medium.conv.reshape(config.num_media, nb, nb)[:, act][:, :, act]
-    emitted = scaled @ conv[0]
-    for m in range(1, config.num_media):
-        emitted = jnp.where((med == m)[:, None], scaled @ conv[m], emitted)
-    q = medium.q[med][:, None]
-    into = emitted / q
-    out = scaled * medium.psum.reshape(-1, nb)[:, act][med] / q
-    new_carrier = _sample_index(jnp.cumsum(into, axis=1), take(xi_e))
-    return into, new_carrier, out
-
-
-def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralConfig, xi_e):
-    """Shared paths: carry out the conversions of up to CONVERSION_BATCH of the lanes still pending.
-
-    The converted photon restarts its path statistics: W = 1, spectrum = emitted weight / q, a
-    new carrier slot drawn from it. Its emitted weight is booked into each band, and the weight it
-    took out of each band as a first conversion or a re-conversion."""
-    pending, spectrum, band, w, path, hits, flux = state
-    n = pending.shape[0]
-    rows = jnp.nonzero(pending, size=min(CONVERSION_BATCH, n), fill_value=n)[0]
-    ok = rows < n
-    into, carrier, out = _emission_shared(arriving, medium, config, rows, xi_e)
-    again = jnp.take(arriving.converted, rows, mode="clip")
-    f64 = jnp.float64
-    act = jnp.asarray(config.active)
-    book = lambda v, m: jnp.where(m[:, None], v, 0.0).astype(f64).sum(0)  # noqa: E731
-    flux = flux.at[act, 1].add(book(into, ok)).at[act, 2].add(book(out, ok & ~again)).at[act, 3].add(book(out, ok & again))
-    return (
-        pending.at[rows].set(False, mode="drop"),
-        spectrum.at[rows].set(into, mode="drop"),
-        band.at[rows].set(carrier, mode="drop"),
-        w.at[rows].set(1.0, mode="drop"),
-        path.at[rows].set(0.0, mode="drop"),
-        hits.at[rows].set(0.0, mode="drop"),
-        flux,
-    )
-
-
-def _convert_batch_per_band(state, lanes: _Lanes, medium: _Medium, flat, w_conv, heat, xi_e):
-    """Per band: carry out the conversions of up to CONVERSION_BATCH of the lanes still pending: draw
-    the emission band from the EEM row, book the closing segment (heat, roulette) and the flux."""
-    pending, band, w, deposit, flux = state
-    n = pending.shape[0]
-    rows = jnp.nonzero(pending, size=min(CONVERSION_BATCH, n), fill_value=n)[0]
-    ok = rows < n
-    take = lambda a: jnp.take(a, rows, axis=0, mode="clip")  # noqa: E731
-    cdf = jnp.cumsum(medium.conv[take(flat)], axis=1)
-    new_band = _sample_index(cdf, take(xi_e))
-    old_band = take(lanes.band)
-    moved = jnp.where(ok, take(w_conv), 0.0)
-    acc = _Acc(None, None, None, None, deposit, flux, None, None, None)
-    acc = _flush_per_band(
-        acc, old_band, take(lanes.converted), jnp.where(ok, take(lanes.heat + heat), 0.0),
-        jnp.where(ok, take(lanes.roulette), 0.0), out_band=old_band, out=moved, into_band=new_band, into=moved,
-    )
-    return (
-        pending.at[rows].set(False, mode="drop"),
-        band.at[rows].set(new_band, mode="drop"),
-        w.at[rows].set(moved.astype(w.dtype), mode="drop"),
-        acc.deposit,
-        acc.flux,
-    )
-
-
-def _flush_per_band(acc: _Acc, band, converted, heat, roulette, out_band=None, out=None, into_band=None, into=None) -> _Acc:
-    """Per band mode: add segments (heat and roulette in `band`) and conversions into the tallies."""
-    f64 = jnp.float64
-    heat, roulette = heat.astype(f64), roulette.astype(f64)
-    rows = jnp.stack([jnp.where(converted, 0.0, heat), jnp.where(converted, heat, 0.0),
-                      jnp.where(converted, 0.0, roulette), jnp.where(converted, roulette, 0.0)], -1)
-    upd = dict(deposit=acc.deposit.at[band].add(rows))
-    if out is not None:
-        out = out.astype(f64)
-        flux = acc.flux.at[into_band, 1].add(into.astype(f64))
-        flux = flux.at[out_band, 2].add(jnp.where(converted, 0.0, out)).at[out_band, 3].add(jnp.where(converted, out, 0.0))
-        upd["flux"] = flux
-    return acc._replace(**upd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -459,7 +154,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     options = config.options
     dtype = lanes.x.dtype
     shared = config.shared
-    nl, nb = config.num_layers, config.num_bands
+    nb = config.num_bands
     regions, offsets = tissue.regions, tissue.region_offsets()
     live = lanes.status == ALIVE
     layer, med = lanes.layer, lanes.medium
@@ -476,14 +171,8 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         xi_e, rng = _rng.next_uniform(rng, dtype)
 
     # hop: a free path (or the carried rest of one) against the layer's faces and region boundaries
-    turbid = mut_c > 0
-    safe_mut = jnp.where(turbid, mut_c, 1.0)
-    tau = jnp.where(lanes.sleft > 0, lanes.sleft, -jnp.log(xi_step))
-    s = jnp.where(turbid, tau / safe_mut, jnp.inf)
+    turbid, safe_mut, s, face, db = free_path(lanes, medium, mut_c, xi_step)
     uz = lanes.uz
-    thickness = _pick(medium.thickness, layer)
-    face = jnp.where(uz > 0, thickness, 0.0)
-    db = jnp.where(uz != 0, (face - lanes.z) / jnp.where(uz != 0, uz, 1.0), jnp.inf)
     d_reg = jnp.full_like(s, jnp.inf)
     target = med  # the medium beyond the nearest region boundary
     if regions:
@@ -514,19 +203,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     sleft = jnp.where(hit & turbid, (s - run) * mut_c, 0.0)
 
     # cross or not at a face (MCML), then find the medium on the far side
-    up = uz < 0
-    n_here = _pick(medium.n_ext, layer + 1)
-    n_next = jnp.where(up, _pick(medium.n_ext, layer), _pick(medium.n_ext, layer + 2))
-    refl, cos_t = phys.fresnel(n_here, n_next, jnp.abs(uz))
-    reflect = xi_a <= refl
-    bx, by, bz = phys.refract(lanes.ux, lanes.uy, uz, n_here, n_next, cos_t)
-    bx = jnp.where(reflect, lanes.ux, bx)
-    by = jnp.where(reflect, lanes.uy, by)
-    bz = jnp.where(reflect, -uz, bz)
-    leave_top = ~reflect & up & (layer == 0)
-    leave_bottom = ~reflect & ~up & (layer == nl - 1)
-    b_layer = jnp.clip(jnp.where(reflect, layer, layer + jnp.where(up, -1, 1)), 0, nl - 1)
-    b_z = jnp.where(reflect, face, jnp.where(up, _pick(medium.thickness, b_layer), 0.0))
+    (bx, by, bz), cos_t, reflect, leave_top, leave_bottom, b_layer, b_z = cross_or_not(lanes, medium, face, xi_a)
     crossed = ~reflect & ~leave_top & ~leave_bottom
     new_med = med
     if regions:

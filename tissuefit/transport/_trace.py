@@ -30,7 +30,7 @@ from .._checks import check_positive_int
 from ..scene import Scene
 from . import _rng
 from ._config import TallySpec, TraceOptions
-from ._lanes import ALIVE, _Acc, _harvest, _idle_lanes, _Lanes, _medium, _refill, _step, _zeros_acc
+from ._lanes import ALIVE, _Acc, _harvest, _idle_lanes, _medium, _refill, _step, _zeros_acc
 from ._result import PathStats, TraceResult, bin_measures
 
 MAX_PHOTONS = 2**32 - 1

@@ -1,0 +1,184 @@
+"""The state of the spectral tracer: static configuration, per-lane photon state, accumulators,
+record buffers, and the optical tables in working precision (see `_spectral_lanes.py`)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from ._config import TraceOptions
+from ._lanes import IDLE
+from ._records import RecordSpec
+
+
+class SpectralConfig(eqx.Module):
+    """Everything static about a spectral trace (part of the jit cache key)."""
+
+    mode: str = eqx.field(static=True)
+    num_bands: int = eqx.field(static=True)
+    active: tuple[int, ...] = eqx.field(static=True)
+    fluorescent: bool = eqx.field(static=True)
+    num_layers: int = eqx.field(static=True)
+    num_media: int = eqx.field(static=True)
+    boost: float = eqx.field(static=True)
+    records: RecordSpec = eqx.field(static=True)
+    options: TraceOptions = eqx.field(static=True)
+
+    @property
+    def shared(self) -> bool:
+        return self.mode == "shared"
+
+    @property
+    def slots(self) -> int:
+        return len(self.active)
+
+
+class _Lanes(NamedTuple):
+    x: Array
+    y: Array
+    z: Array  # depth below the current layer's top face [cm]
+    ux: Array
+    uy: Array
+    uz: Array
+    w: Array  # per_band: the photon's weight; shared: the carrier's weight W
+    spectrum: Array | None  # shared: s [lanes, slots]
+    path: Array | None  # shared: L [lanes, media] since the last reset [cm]
+    hits: Array | None  # shared: n [lanes, media] since the last reset
+    sleft: Array
+    layer: Array
+    medium: Array
+    band: Array  # per_band: band index; shared: carrier slot (index into `active`)
+    converted: Array
+    status: Array
+    pid: Array
+    rng: tuple
+    heat: Array  # per_band: heat in the current band since the last conversion
+    roulette: Array  # per_band: roulette's net weight in the current band since the last conversion
+    steps: Array
+
+
+class _Buffer(NamedTuple):
+    position: Array  # [cap, 3]
+    direction: Array
+    w: Array  # [cap]: the weight (per_band) or W (shared)
+    spectrum: Array | None  # [cap, slots]
+    path: Array | None  # [cap, media]
+    hits: Array | None
+    band: Array
+    converted: Array
+    photon: Array
+    count: Array
+    overflow: Array
+
+
+class _Acc(NamedTuple):
+    next_pid: Array
+    rsp: Array
+    totals: Array  # [2, 2]: (rd, tt) summed over bands x (sum, sum of squares) over photons
+    escape: Array  # [bands, 4, 2]: (rd, tt, rd_fluor, tt_fluor) x (sum, sum of squares)
+    deposit: Array  # [bands, 4]: heat, heat of converted photons, roulette, roulette of converted photons
+    flux: Array  # [bands, 4]: launched, emitted, converted from (first conversions), reconverted from
+    steps: Array
+    surface: _Buffer | None
+    volume: _Buffer | None
+
+
+class _Medium(NamedTuple):
+    n_ext: Array
+    thickness: Array
+    z0: Array
+    mua: Array  # [media * bands], flat: index medium * bands + band
+    mus: Array
+    g: Array
+    power: Array  # [bands] source band powers (sum 1)
+    conv: Array | None  # [media * bands, bands]
+    psum: Array | None  # [media * bands]: total conversion probability
+    q: Array | None  # shared: [media] conversion sampling probability
+    log_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mus_k / mus_c)
+    log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
+    dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
+
+
+def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
+    t = scene.tissue
+    geo = t.geometry
+    mua, mus, g = t.properties()
+    nm, nb = mua.shape
+    conv = psum = q = log_ratio = log_mut_ratio = dmut = None
+    if config.fluorescent:
+        full = t.conversion()  # [media, bands, bands]
+        conv = full.reshape(nm * nb, nb).astype(dtype)
+        psum = full.sum(-1)
+    if config.shared:
+        act = jnp.asarray(config.active)
+        mua_a, mus_a = mua[:, act], mus[:, act]
+        both = (mus_a[:, None, :] > 0) & (mus_a[:, :, None] > 0)
+        log_ratio = jnp.where(both, jnp.log(jnp.where(both, mus_a[:, None, :], 1.0) / jnp.where(both, mus_a[:, :, None], 1.0)), 0.0)
+        mut_a = mua_a + mus_a
+        dmut = mut_a[:, None, :] - mut_a[:, :, None]
+        turbid = (mut_a[:, None, :] > 0) & (mut_a[:, :, None] > 0)
+        log_mut_ratio = jnp.where(
+            turbid, jnp.log(jnp.where(turbid, mut_a[:, None, :], 1.0) / jnp.where(turbid, mut_a[:, :, None], 1.0)), 0.0
+        )
+        log_ratio, log_mut_ratio, dmut = (a.astype(dtype) for a in (log_ratio, log_mut_ratio, dmut))
+        if config.fluorescent:
+            p = psum[:, act]
+            denom = mus_a / jnp.where(mut_a > 0, mut_a, 1.0) + p
+            q_a = jnp.where(denom > 0, p / jnp.where(denom > 0, denom, 1.0), 0.0)
+            q = jnp.minimum(1.0, config.boost * q_a.max(1)).astype(dtype)
+    return _Medium(
+        n_ext=jnp.concatenate([geo.n_above[None], geo.n, geo.n_below[None]]).astype(dtype),
+        thickness=geo.thickness.astype(dtype), z0=geo.z0.astype(dtype),
+        mua=mua.reshape(-1).astype(dtype), mus=mus.reshape(-1).astype(dtype), g=g.reshape(-1).astype(dtype),
+        power=scene.band_power().astype(dtype), conv=conv,
+        psum=None if psum is None else psum.reshape(-1).astype(dtype), q=q, log_ratio=log_ratio,
+        log_mut_ratio=log_mut_ratio, dmut=dmut,
+    )
+
+
+def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:
+    shared = config.shared
+    return _Buffer(
+        position=jnp.zeros((capacity, 3), dtype), direction=jnp.zeros((capacity, 3), dtype),
+        w=jnp.zeros(capacity, dtype),
+        spectrum=jnp.zeros((capacity, config.slots), dtype) if shared else None,
+        path=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
+        hits=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
+        band=jnp.zeros(capacity, jnp.int32), converted=jnp.zeros(capacity, bool),
+        photon=jnp.zeros(capacity, jnp.int64), count=jnp.zeros((), jnp.int64), overflow=jnp.zeros((), jnp.int64),
+    )
+
+
+def zeros_acc(config: SpectralConfig, capacity_share: int, dtype) -> _Acc:
+    """Accumulators of one device; each device keeps `1/capacity_share` of every record buffer."""
+    f64 = jnp.float64
+    nb = config.num_bands
+    rec = config.records
+
+    def buf(capacity):
+        return _empty_buffer(-(-capacity // capacity_share), config, dtype) if capacity else None
+
+    return _Acc(
+        next_pid=jnp.zeros((), jnp.int64), rsp=jnp.zeros((), f64), totals=jnp.zeros((2, 2), f64),
+        escape=jnp.zeros((nb, 4, 2), f64), deposit=jnp.zeros((nb, 4), f64), flux=jnp.zeros((nb, 4), f64),
+        steps=jnp.zeros((), jnp.int64), surface=buf(rec.surface), volume=buf(rec.volume),
+    )
+
+
+def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
+    zf = jnp.zeros(lanes, dtype)
+    zi = jnp.zeros(lanes, jnp.int32)
+    zu = jnp.zeros(lanes, jnp.uint32)
+    shared = config.shared
+    per_medium = (lambda: jnp.zeros((lanes, config.num_media), dtype)) if shared else (lambda: None)
+    return _Lanes(
+        x=zf, y=zf, z=zf, ux=zf, uy=zf, uz=zf, w=zf,
+        spectrum=jnp.zeros((lanes, config.slots), dtype) if shared else None,
+        path=per_medium(), hits=per_medium(), sleft=zf,
+        layer=zi, medium=zi, band=zi, converted=jnp.zeros(lanes, bool),
+        status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
+        heat=zf, roulette=zf, steps=zi,
+    )
