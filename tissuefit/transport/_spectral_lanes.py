@@ -126,8 +126,9 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
     med = _medium_at(scene.tissue.regions, scene.tissue.region_offsets(), layer, x, y, _pick(medium.z0, layer), (ux, uy, uz))
     zeros = jnp.zeros_like(x)
     new = _Lanes(
-        x=x, y=y, z=zeros, ux=ux, uy=uy, uz=uz, w=w0,
-        spectrum=jnp.broadcast_to(power, lanes.spectrum.shape) if shared else None,
+        # shared: the spectrum is kept with its largest entry 1, its scale in W (roulette reads W)
+        x=x, y=y, z=zeros, ux=ux, uy=uy, uz=uz, w=w0 * jnp.max(power) if shared else w0,
+        spectrum=jnp.broadcast_to(power / jnp.max(power), lanes.spectrum.shape) if shared else None,
         path=jnp.zeros_like(lanes.path) if shared else None, hits=jnp.zeros_like(lanes.hits) if shared else None,
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
@@ -271,9 +272,9 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     status = jnp.where(hit_face & leave_top, ESC_TOP, jnp.where(hit_face & leave_bottom, ESC_BOTTOM, ALIVE))
     status = jnp.where(stuck, KILLED, status)
 
-    # roulette (shared: on the carrier weight times the largest entry of the spectrum)
+    # roulette (shared: on the carrier weight W, the spectrum's largest entry being 1)
     inside = status == ALIVE
-    size = w_new * jnp.max(spectrum, axis=1) if shared else w_new
+    size = w_new
     low = inside & (size < options.roulette_threshold)
     survive = (xi_c <= options.roulette_chance) & (size > 0)
     gain = jnp.where(low, jnp.where(survive, w_new * (1.0 / options.roulette_chance - 1.0), -w_new), 0.0)
@@ -288,13 +289,16 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         seg_heat, seg_roulette = lanes.heat + heat, lanes.roulette + gain
     upd = dict(
         x=x, y=y, z=jnp.where(hit_face, b_z, z), ux=ux, uy=uy, uz=uz_new, w=w_new,
-        spectrum=spectrum, path=path, hits=hits, sleft=sleft,
+        sleft=sleft,
         layer=jnp.where(hit_face, b_layer, layer).astype(jnp.int32), medium=new_med.astype(jnp.int32),
         band=new_band.astype(jnp.int32), converted=converted, status=status.astype(jnp.int32), rng=rng,
         heat=seg_heat, roulette=seg_roulette, steps=lanes.steps + 1,
     )
     new = lanes._replace(**upd)
     out_lanes = jax.tree.map(lambda a, b: jnp.where(_expand(live, a), a, b), new, lanes)
+    # The per-band arrays of shared paths change only where a live lane moved or converted (their
+    # updates are masked already): merging them lane by lane again would cost slots x lanes per step.
+    out_lanes = out_lanes._replace(spectrum=spectrum, path=path, hits=hits)
     if acc.volume is not None:
         # the photon as it arrives at the interaction (its weight, spectrum and path statistics)
         arriving = lanes._replace(path=path if shared else None)

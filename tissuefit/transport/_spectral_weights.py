@@ -8,7 +8,7 @@ from jaxtyping import Array
 
 from ._spectral_state import _Acc, _Lanes, _Medium, SpectralConfig
 
-CONVERSION_BATCH = 128
+CONVERSION_BATCH = 16
 """Lanes whose conversions one pass of a step's conversion loop evaluates (gathered, so that a
 step pays for the few lanes that convert, not for all of them)."""
 
@@ -77,14 +77,16 @@ def _emission_shared(lanes: _Lanes, medium: _Medium, config: SpectralConfig, row
 def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralConfig, xi_e):
     """Shared paths: carry out the conversions of up to CONVERSION_BATCH of the lanes still pending.
 
-    The converted photon restarts its path statistics: W = 1, spectrum = emitted weight / q, a
-    new carrier slot drawn from it. Its emitted weight is booked into each band, and the weight it
+    The converted photon restarts its path statistics: spectrum = emitted weight / q (scaled to a
+    largest entry of 1, the scale in W), a new carrier slot drawn from it. Its emitted weight is booked into each band, and the weight it
     took out of each band as a first conversion or a re-conversion."""
     pending, spectrum, band, w, path, hits, flux = state
     n = pending.shape[0]
     rows = jnp.nonzero(pending, size=min(CONVERSION_BATCH, n), fill_value=n)[0]
     ok = rows < n
     into, carrier, out = _emission_shared(arriving, medium, config, rows, xi_e)
+    largest = jnp.max(into, axis=1)  # W; the new spectrum is into / largest (0: nothing emitted, W = 0 ends it)
+    peak = jnp.where(largest > 0, largest, 1.0)
     again = jnp.take(arriving.converted, rows, mode="clip")
     f64 = jnp.float64
     act = jnp.asarray(config.active)
@@ -92,9 +94,9 @@ def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralCon
     flux = flux.at[act, 1].add(book(into, ok)).at[act, 2].add(book(out, ok & ~again)).at[act, 3].add(book(out, ok & again))
     return (
         pending.at[rows].set(False, mode="drop"),
-        spectrum.at[rows].set(into, mode="drop"),
+        spectrum.at[rows].set(into / peak[:, None], mode="drop"),
         band.at[rows].set(carrier, mode="drop"),
-        w.at[rows].set(1.0, mode="drop"),
+        w.at[rows].set(largest, mode="drop"),
         path.at[rows].set(0.0, mode="drop"),
         hits.at[rows].set(0.0, mode="drop"),
         flux,
