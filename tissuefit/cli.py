@@ -185,8 +185,9 @@ PHOTONS_PER_CHUNK = 1_000_000
 each at the measured ~500k photons/s on 2 cores); results do not depend on the chunking."""
 
 SPECTRAL_PHOTONS_PER_CHUNK = 250_000
-"""The same for spectral runs, which trace about ten times fewer photons per second (21 bands
-with fluorescence: ~50k photons/s measured on 2 cores), so chunks are smaller."""
+"""The same for spectral runs, which are slower per photon (21 bands with fluorescence: about
+1.9x the time of a one-band run with shared paths, more per band or with regions), so chunks are
+smaller (experiments/spectral/RESULTS.md)."""
 
 
 def _trace_with_progress(run: io.Run | io.SpectralRun, label: str, checkpoint: Path | None = None):
