@@ -42,12 +42,7 @@ def write_profile_plot(path, record: dict) -> None:
         ax.grid(alpha=0.3)
     fig.suptitle(f"{record['name']}: rd = {record['rd']:.5g}, a = {record['a']:.5g}, tt = {record['tt']:.5g} "
                  f"({record['photons']:,} photons)", fontsize=9)
-    fig.tight_layout()
-    try:
-        with atomic_writer(path, binary=True) as handle:
-            fig.savefig(handle, format="png", dpi=120)
-    finally:
-        plt.close(fig)
+    _save(fig, path)
 
 
 def _values(entries) -> np.ndarray:
@@ -83,6 +78,13 @@ def write_spectrum_plot(path, record: dict) -> None:
         f"{record['name']}: rd = {record['rd_total']:.5g}, "
         f"fluorescence escaping = {record['rd_fluor_total']:.3g} (top), "
         f"a = {record['a_total']:.5g} ({record['photons']:,} photons, {record['mode']})", fontsize=9)
+    _save(fig, path)
+
+
+def _save(fig, path) -> None:
+    """Lay out, write as PNG atomically (a temp file renamed into place), close the figure."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     try:
         with atomic_writer(path, binary=True) as handle:
