@@ -103,7 +103,9 @@ def test_three_layer_example_has_a_glass_layer_and_flat_beam():
     assert run.options.launch == "halton" and run.options.lanes == 4096
 
 
-@pytest.mark.parametrize("path", sorted(EXAMPLES.iterdir()), ids=lambda p: p.name)
+# scene files only: a voxel grid's .npy lies beside its scene
+@pytest.mark.parametrize("path", sorted(p for p in EXAMPLES.iterdir() if p.suffix in (".toml", ".mci")),
+                         ids=lambda p: p.name)
 def test_every_example_loads_and_round_trips(path):
     for run in load_runs(path):
         doc = scene_to_dict(run)

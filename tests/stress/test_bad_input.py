@@ -399,4 +399,5 @@ def test_cli_refuses_a_semi_infinite_glass_layer(tmp_path, capsys, command):
 def test_examples_still_load():
     """The fixes above refuse nothing the shipped examples use."""
     for path in sorted((Path(__file__).parents[2] / "data_spec" / "examples").iterdir()):
-        assert load_runs(path)
+        if path.suffix in (".toml", ".mci"):  # not the .npy beside a voxel-grid scene
+            assert load_runs(path)

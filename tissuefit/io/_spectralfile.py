@@ -1,12 +1,13 @@
 """Spectral scene files: the band grid, the source spectrum, spectral optics of layers and regions.
 
 `_scenefile` validates the whole document against the schema first; the builders here turn its
-spectral parts into scene objects (`BandGrid`, spectra, `LayerOptics`, `Sphere`/`Box`) and return,
-beside each object, its *resolved* document: defaults filled in and file names made absolute, so
-that the echo in every output reproduces the scene. What the schema cannot check is checked here
-(list lengths against the band count, override wavelengths against the band centres, files that
-exist and cover the grid, a spectrum with power in the grid, regions inside their layer); each
-problem is collected as one message naming the field, the value, its unit and the allowed range.
+spectral parts into scene objects (`BandGrid`, spectra, `LayerOptics`, `Sphere`/`Box`/`VoxelGrid`)
+and return, beside each object, its *resolved* document: defaults filled in and file names made
+absolute, so that the echo in every output reproduces the scene. What the schema cannot check is
+checked here (list lengths against the band count, override wavelengths against the band centres,
+files that exist and cover the grid, a spectrum with power in the grid, regions inside their layer,
+a voxel grid's concentration array: its shape, finite and >= 0); each problem is collected as one
+message naming the field, the value, its unit and the allowed range.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from ..scene import (
     Sphere,
     TabulatedAbsorber,
     TabulatedSpectrum,
+    VoxelGrid,
     collagen,
     protoporphyrin_ix,
     read_spectrum_table,
@@ -116,6 +118,28 @@ class Context:
         except OSError as err:
             self.fail(f"{where}.file = {_quote(name)}: cannot read {path}: {err.strerror or err}")
         return path
+
+    def npy_file(self, where: str, name: str) -> tuple[str, np.ndarray]:
+        """(absolute path, array) of a NumPy .npy file, as float64; real numbers only."""
+        path = os.path.abspath(self.base / name)
+        field = f"{where} = {_quote(name)}"
+        try:
+            with open(path, "rb") as handle:
+                magic = handle.read(6)
+            if magic != b"\x93NUMPY":
+                self.fail(f"{field}: {path} is not a NumPy .npy file (write the array with numpy.save)")
+            array = np.load(path, allow_pickle=False)
+            digest = _sha256(path)
+        except FileNotFoundError:
+            self.fail(f"{field}: no such file ({path})")
+        except OSError as err:
+            self.fail(f"{field}: cannot read {path}: {err.strerror or err}")
+        except ValueError as err:
+            self.fail(f"{field}: cannot read {path} as a .npy array: {err}")
+        if array.dtype.kind not in "iuf":
+            self.fail(f"{field}: {path} holds {array.dtype} values; expected real numbers (float or integer)")
+        self.files[path] = digest
+        return path, array.astype(np.float64)
 
 
 def _sha256(path: str) -> str:
@@ -228,15 +252,18 @@ def build_spectrum(ctx: Context, doc: dict | None):
 # Optics of a layer or region
 
 
-def build_optics(ctx: Context, doc: dict, where: str):
+def build_optics(ctx: Context, doc: dict, where: str, *, voxels: bool = False):
     """(LayerOptics, echo of its optics keys) for a layer or region document.
 
     Scalar `mua`, `mus`, `g` become a constant absorber and a constant scatterer (the same in every
     band); otherwise `absorbers` and `scattering` are built. `override` applies to either form.
+    `voxels`: the optics of a voxel grid, whose fluorophores have no `c` of their own (the grid's
+    concentration array holds it): they are built with c = 0, unused, and echoed without it.
     """
     bands = ctx.bands
     if "absorbers" in doc:
-        items = [ctx.attempt(f"{where}.absorbers[{k}]", lambda a=a, k=k: _absorber(ctx, a, f"{where}.absorbers[{k}]"))
+        items = [ctx.attempt(f"{where}.absorbers[{k}]",
+                             lambda a=a, k=k: _absorber(ctx, a, f"{where}.absorbers[{k}]", voxels=voxels))
                  for k, a in enumerate(doc["absorbers"])]
         scattering = ctx.attempt(f"{where}.scattering",
                                  lambda: _scatterer(ctx, doc["scattering"], f"{where}.scattering"))
@@ -260,7 +287,7 @@ def build_optics(ctx: Context, doc: dict, where: str):
     return optics, echo
 
 
-def _absorber(ctx: Context, doc: dict, where: str):
+def _absorber(ctx: Context, doc: dict, where: str, *, voxels: bool = False):
     kind, bands = doc["kind"], ctx.bands
     if kind == "constant":
         mua = _per_band(ctx, f"{where}.mua", doc["mua"])
@@ -282,20 +309,25 @@ def _absorber(ctx: Context, doc: dict, where: str):
                           "concentration_M": float(doc["concentration_M"])}
     if kind in ("collagen", "protoporphyrin_ix"):
         make = collagen if kind == "collagen" else protoporphyrin_ix
-        absorber = make(bands, **{k: doc[k] for k in ("d", "c", "quantum_yield") if k in doc})
-        return absorber, {"kind": kind, **_fluorophore_echo(absorber)}
+        given = {k: doc[k] for k in ("d", "c", "quantum_yield") if k in doc}
+        if voxels:
+            given["c"] = 0.0  # the schema refused a `c` key here
+        absorber = make(bands, **given)
+        return absorber, {"kind": kind, **_fluorophore_echo(absorber, voxels)}
     path = ctx.eem_file(where, doc["file"])
     name = doc.get("name", Path(doc["file"]).stem)
     try:
-        absorber = Fluorophore.from_eem_file(path, bands, name=name, d=doc["d"], c=doc["c"],
+        absorber = Fluorophore.from_eem_file(path, bands, name=name, d=doc["d"], c=0.0 if voxels else doc["c"],
                                              quantum_yield=doc["quantum_yield"], peak_absorption=doc["peak_absorption"])
     except ValueError as err:
         ctx.fail(f"{where}.file: {path}: {err}" if path not in str(err) else f"{where}.file: {err}")
-    return absorber, {"kind": kind, "file": path, "name": name, **_fluorophore_echo(absorber),
+    return absorber, {"kind": kind, "file": path, "name": name, **_fluorophore_echo(absorber, voxels),
                       "peak_absorption": float(doc["peak_absorption"])}
 
 
-def _fluorophore_echo(f: Fluorophore) -> dict:
+def _fluorophore_echo(f: Fluorophore, voxels: bool = False) -> dict:
+    if voxels:
+        return {"d": float(f.d), "quantum_yield": float(f.quantum_yield)}
     return {"d": float(f.d), "c": float(f.c), "quantum_yield": float(f.quantum_yield)}
 
 
@@ -339,17 +371,18 @@ def _override(ctx: Context, doc: dict, where: str):
 
 
 def build_region(ctx: Context, doc: dict, where: str, layer_depths: list[tuple[float, float]]):
-    """(Sphere or Box, echo) of one `[[regions]]` entry; `layer_depths` [(top, bottom)] cm per layer."""
+    """(Sphere, Box or VoxelGrid, echo) of one `[[regions]]` entry; `layer_depths` [(top, bottom)] cm per layer."""
     layer = int(doc.get("layer", 0))
     if layer >= len(layer_depths):
         ctx.problems.append(f"{where}.layer = {layer} is out of range; allowed [0, {len(layer_depths) - 1}] (integer): "
                             f"the tissue has {len(layer_depths)} layer(s)")
         return None
-    built = build_optics(ctx, doc, where)
+    kind = doc["kind"]
+    built = build_optics(ctx, doc, where, voxels=kind == "voxel_grid")
     if built is None:
         return None
     optics, optics_echo = built
-    if doc["kind"] == "sphere":
+    if kind == "sphere":
         region = ctx.attempt(where, lambda: Sphere(doc["center_cm"], doc["radius_cm"], optics=optics, layer=layer))
         echo = {"center_cm": _floats(doc["center_cm"]), "radius_cm": float(doc["radius_cm"])}
     else:
@@ -359,8 +392,15 @@ def build_region(ctx: Context, doc: dict, where: str, layer_depths: list[tuple[f
                 ctx.problems.append(f"{where}.upper_cm[{i}] = {upper[i]:g} is not above {where}.lower_cm[{i}] = "
                                     f"{lower[i]:g}; allowed ({lower[i]:g}, inf) cm")
                 return None
-        region = ctx.attempt(where, lambda: Box(lower, upper, optics=optics, layer=layer))
         echo = {"lower_cm": _floats(lower), "upper_cm": _floats(upper)}
+        if kind == "box":
+            region = ctx.attempt(where, lambda: Box(lower, upper, optics=optics, layer=layer))
+        else:
+            built = ctx.attempt(where, lambda: _voxel_grid(ctx, doc, where, optics, layer, layer_depths[layer]))
+            if built is None:
+                return None
+            region, voxel_echo = built
+            echo.update(voxel_echo)
     if region is None:
         return None
     top, bottom = layer_depths[layer]
@@ -371,4 +411,44 @@ def build_region(ctx: Context, doc: dict, where: str, layer_depths: list[tuple[f
             f"(z = {top:g} .. {bottom:g} cm); a region is clipped to its layer, so it would be empty"
         )
         return None
-    return region, {"kind": doc["kind"], "layer": layer, **echo, **optics_echo}
+    return region, {"kind": kind, "layer": layer, **echo, **optics_echo}
+
+
+def _voxel_grid(ctx: Context, doc: dict, where: str, optics: LayerOptics, layer: int, depths: tuple[float, float]):
+    """(VoxelGrid, echo of its own keys): the concentration array read and checked (shape, finite,
+    >= 0), and the grid inside its layer's depth range (a voxel beyond a face would lose its data)."""
+    lower, upper = doc["lower_cm"], doc["upper_cm"]
+    top, bottom = depths
+    slack = 1e-9 * max(1.0, abs(top), abs(bottom) if math.isfinite(bottom) else 0.0)  # layer faces are sums
+    if lower[2] < top - slack:
+        ctx.fail(f"{where}.lower_cm[2] = {lower[2]:g} cm lies above the top of layer {layer} (z = {top:g} cm); "
+                 f"a voxel grid must lie inside its layer: allowed [{top:g}, {bottom:g}) cm")
+    if upper[2] > bottom + slack:
+        ctx.fail(f"{where}.upper_cm[2] = {upper[2]:g} cm lies below the bottom of layer {layer} (z = {bottom:g} cm); "
+                 f"a voxel grid must lie inside its layer: allowed ({lower[2]:g}, {bottom:g}] cm")
+    field = f"{where}.concentration_file = {_quote(doc['concentration_file'])}"
+    path, c = ctx.npy_file(f"{where}.concentration_file", doc["concentration_file"])
+    names = [a.name for a in optics.absorbers if isinstance(a, Fluorophore)]
+    listed = f" ({', '.join(names)}, as in {where}.absorbers)" if names else ""
+    shape = list(c.shape)
+    single = c.ndim == 3 and len(names) == 1  # [nx, ny, nz]: messages index the file as it is
+    if single:
+        c = c[None]
+    if c.ndim != 4 or c.shape[0] != len(names) or min(c.shape[1:]) < 1:
+        ctx.fail(f"{field}: the array has shape {shape}; expected [fluorophores, nx, ny, nz] with "
+                 f"{len(names)} fluorophore(s){listed}"
+                 + (", or [nx, ny, nz]" if len(names) == 1 else "") + ", each n >= 1")
+    if "shape" in doc and list(doc["shape"]) != list(c.shape[1:]):
+        ctx.fail(f"{where}.shape = {list(doc['shape'])} does not match {field}, whose voxels are "
+                 f"{list(c.shape[1:])} (nx, ny, nz)")
+    bad = ~(np.isfinite(c) & (c >= 0))
+    if bad.any():
+        index = [int(i) for i in np.argwhere(bad)[0]]
+        value = c[tuple(index)]
+        what = "is not a number" if math.isnan(value) else "is out of range"
+        more = int(bad.sum()) - 1
+        ctx.fail(f"{field}: c{index[1:] if single else index} = {value:g} {what} (fluorophore {names[index[0]]}, "
+                 f"voxel {index[1:]}); allowed finite values in [0, inf)"
+                 + (f"; {more} more value(s) out of range too" if more else ""))
+    grid = VoxelGrid(lower, upper, c, optics=optics, layer=layer)
+    return grid, {"shape": list(grid.shape), "concentration_file": path}
