@@ -6,12 +6,21 @@ Two kinds, each in a fixed-size buffer whose capacity is chosen before `jit` (st
 - volume records: one per interaction of a converted (fluorescent) photon inside the tissue,
   at the interaction point (z > 0, depth below the surface), with the direction the photon had
   *arriving* at the interaction (the direction a phase function is evaluated against).
-  With `RecordSpec.volume_all`, non-converted photons' interactions are recorded too.
+  With `RecordSpec.volume_all`, non-converted photons' interactions are recorded too. With
+  `RecordSpec.emission`, every conversion point is recorded as well, as an *emission* record: the
+  power the photon leaves with (isotropically) after the conversion, `emission = True`. Arrival
+  records estimate the collision density (mut x radiance); emission records the fluorescence
+  source. A renderer's in-scattered radiance needs both (see `tissuefit.render`).
 
 Coordinates: tissue surface at z = 0, depth z > 0 downward (MCML's convention), all in cm.
 Powers are per launched photon (a record's `power` summed over all records of a kind gives the
-corresponding tally: surface powers sum to rd per band; volume powers sum to the weight arriving
-at interactions). Buffers fill in photon-index order within each device's photon range, so a run
+corresponding tally: surface powers sum to rd per band; volume arrival powers sum to the weight
+arriving at interactions; emission powers sum to the emitted fluorescence per band).
+
+Path statistics: each record carries the path length `path` [cm] and the number of scattering
+interactions `hits` the photon made in each medium (layers first, then region media, as
+`SpectralTissue.properties()` orders them) since its launch or its last conversion: the current
+segment, with whose optical properties its power is an explicit function (DESIGN.md §5). Buffers fill in photon-index order within each device's photon range, so a run
 is reproducible; when a buffer is full, further records are counted in `overflow` and dropped —
 never silently.
 """
@@ -31,12 +40,15 @@ class RecordSpec(eqx.Module):
     - `surface`: capacity of the surface buffer (0 = no surface records; the default).
     - `volume`: capacity of the volume buffer (0 = none; the default).
     - `volume_all`: record interactions of non-converted photons too (default: converted only).
+    - `emission`: record every conversion point as an emission record in the volume buffer
+      (default off; the renderer turns it on).
     The paper keeps 300 000 of each. Records are off unless a consumer asks for them.
     """
 
     surface: int = eqx.field(static=True, default=0)
     volume: int = eqx.field(static=True, default=0)
     volume_all: bool = eqx.field(static=True, default=False)
+    emission: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         for name in ("surface", "volume"):
@@ -45,8 +57,9 @@ class RecordSpec(eqx.Module):
                 raise ValueError(f"records.{name} = {value!r}; allowed an integer in [0, 2^31 - 1] (buffer capacity, records)")
             if value:
                 check_positive_int(f"records.{name}", value, high=2**31 - 1)
-        if not isinstance(self.volume_all, bool):
-            raise TypeError(f"records.volume_all = {self.volume_all!r} must be True or False")
+        for name in ("volume_all", "emission"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"records.{name} = {getattr(self, name)!r} must be True or False")
 
     @property
     def any(self) -> bool:
@@ -62,7 +75,10 @@ class PhotonRecords(eqx.Module):
       fluorescence carries the quantum yield, not the Stokes energy factor).
     - `band` [capacity] int: the band whose optical properties carried the photon when recorded.
     - `converted` [capacity] bool: the photon had been converted (fluorescence) when recorded.
+    - `emission` [capacity] bool: an emission record (a conversion point; isotropic emission).
     - `photon` [capacity] int: the index of the photon that made the record.
+    - `path` [capacity, media] cm and `hits` [capacity, media]: path length and scattering
+      interactions per medium since launch or the last conversion (see the module docstring).
     - `count`: valid rows; `overflow`: records dropped because the buffer was full.
     """
 
@@ -74,6 +90,9 @@ class PhotonRecords(eqx.Module):
     photon: Int[Array, " capacity"]
     count: int
     overflow: int
+    emission: Bool[Array, " capacity"] | None = None
+    path: Float[Array, "capacity media"] | None = None
+    hits: Float[Array, "capacity media"] | None = None
 
     @property
     def capacity(self) -> int:
@@ -82,8 +101,16 @@ class PhotonRecords(eqx.Module):
     def valid(self) -> "PhotonRecords":
         """The first `count` rows only (numpy slices)."""
         n = int(self.count)
+        return self.select(np.arange(self.capacity) < n)
+
+    def select(self, mask) -> "PhotonRecords":
+        """The rows where `mask` [capacity] is true, as a packed buffer (numpy; `count` = rows kept,
+        `overflow` carried over). E.g. `records.select(~records.emission)`."""
+        mask = np.asarray(mask, bool) & (np.arange(self.capacity) < int(self.count))
+        cut = lambda a: None if a is None else np.asarray(a)[mask]  # noqa: E731
         return PhotonRecords(
-            position=self.position[:n], direction=self.direction[:n], power=self.power[:n],
-            band=self.band[:n], converted=self.converted[:n], photon=self.photon[:n],
-            count=n, overflow=int(self.overflow),
+            position=cut(self.position), direction=cut(self.direction), power=cut(self.power),
+            band=cut(self.band), converted=cut(self.converted), photon=cut(self.photon),
+            count=int(mask.sum()), overflow=int(self.overflow),
+            emission=cut(self.emission), path=cut(self.path), hits=cut(self.hits),
         )

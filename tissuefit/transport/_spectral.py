@@ -257,7 +257,8 @@ def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) ->
     return PhotonRecords(
         position=take(buf.position).astype(np.float64), direction=take(buf.direction).astype(np.float64),
         power=power, band=band, converted=take(buf.converted), photon=take(buf.photon),
-        count=count, overflow=int(np.sum(buf.overflow)),
+        count=count, overflow=int(np.sum(buf.overflow)), emission=take(buf.emission),
+        path=take(buf.path).astype(np.float64), hits=take(buf.hits).astype(np.float64),
     )
 
 

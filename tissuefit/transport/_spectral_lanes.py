@@ -68,9 +68,10 @@ def _append(buf: _Buffer, mask: Array, **rows) -> _Buffer:
     return buf._replace(count=buf.count + fits, overflow=buf.overflow + added - fits, **new)
 
 
-def _record_rows(lanes: _Lanes, position, direction, band) -> dict:
+def _record_rows(lanes: _Lanes, position, direction, band, emission=False) -> dict:
     return dict(position=position, direction=direction, w=lanes.w, spectrum=lanes.spectrum, path=lanes.path,
-                hits=lanes.hits, band=band, converted=lanes.converted, photon=lanes.pid)
+                hits=lanes.hits, band=band, converted=lanes.converted, photon=lanes.pid,
+                emission=jnp.full(lanes.w.shape, emission))
 
 
 def _medium_at(regions, offsets, layer: Array, x, y, zabs, u) -> Array:
@@ -129,7 +130,8 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         # shared: the spectrum is kept with its largest entry 1, its scale in W (roulette reads W)
         x=x, y=y, z=zeros, ux=ux, uy=uy, uz=uz, w=w0 * jnp.max(power) if shared else w0,
         spectrum=jnp.broadcast_to(power / jnp.max(power), lanes.spectrum.shape) if shared else None,
-        path=jnp.zeros_like(lanes.path) if shared else None, hits=jnp.zeros_like(lanes.hits) if shared else None,
+        path=None if lanes.path is None else jnp.zeros_like(lanes.path),
+        hits=None if lanes.hits is None else jnp.zeros_like(lanes.hits),
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
@@ -220,10 +222,11 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     albedo = mus_c / safe_mut
     acc_upd = {}
     path = hits = spectrum = None
-    if shared:
+    if config.track_path:
         onehot = med[:, None] == jnp.arange(config.num_media, dtype=jnp.int32)[None, :]
         path = lanes.path + jnp.where(onehot & live[:, None], run[:, None], 0.0)
         hits = lanes.hits
+    if shared:
         spectrum = lanes.spectrum
     if config.fluorescent:
         if shared:
@@ -237,8 +240,9 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     else:
         convert = jnp.zeros_like(interact)
         keep = w * albedo
-    if shared:
+    if config.track_path:
         hits = hits + (onehot & (interact & ~convert)[:, None]).astype(dtype)
+    path_in = path  # the path statistics arriving at this interaction (a conversion resets them)
     new_band = lanes.band
     w_new = jnp.where(interact, keep, w)
     if config.fluorescent and shared:
@@ -261,6 +265,9 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
             state,
         )
         _, new_band, w_new, acc_upd["deposit"], acc_upd["flux"] = state
+        if config.track_path:
+            path = jnp.where(convert[:, None], 0.0, path)
+            hits = jnp.where(convert[:, None], 0.0, hits)
 
     ix, iy, iz = _isotropic(xi_a, xi_b)
     cos_s = phys.sample_hg_cos(g_c, xi_a)
@@ -271,6 +278,8 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     uz_new = jnp.where(hit_face, jnp.where(leave_top | leave_bottom, cos_t, bz), jnp.where(hit_reg, uz, jnp.where(convert, iz, sz)))
     status = jnp.where(hit_face & leave_top, ESC_TOP, jnp.where(hit_face & leave_bottom, ESC_BOTTOM, ALIVE))
     status = jnp.where(stuck, KILLED, status)
+
+    w_emitted = w_new  # after a conversion: the weight leaving the conversion point
 
     # roulette (shared: on the carrier weight W, the spectrum's largest entry being 1)
     inside = status == ALIVE
@@ -301,12 +310,20 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     out_lanes = out_lanes._replace(spectrum=spectrum, path=path, hits=hits)
     if acc.volume is not None:
         # the photon as it arrives at the interaction (its weight, spectrum and path statistics)
-        arriving = lanes._replace(path=path if shared else None)
+        arriving = lanes._replace(path=path_in)
+        here = jnp.stack([x, y, _pick(medium.z0, layer) + z], -1)
         rec = interact & (lanes.converted | config.records.volume_all)
-        acc_upd["volume"] = _append(
-            acc.volume, rec, **_record_rows(arriving, jnp.stack([x, y, _pick(medium.z0, layer) + z], -1),
-                                            jnp.stack([lanes.ux, lanes.uy, uz], -1), lanes.band),
-        )
+        volume = _append(acc.volume, rec, **_record_rows(arriving, here, jnp.stack([lanes.ux, lanes.uy, uz], -1), lanes.band))
+        if config.fluorescent and config.records.emission:
+            # the photon as it leaves a conversion point: emitted weight (spectrum), fresh path
+            leaving = lanes._replace(w=w_emitted, spectrum=spectrum, path=path, hits=hits, converted=jnp.ones_like(converted))
+            volume = jax.lax.cond(
+                jnp.any(convert),
+                lambda v: _append(v, convert, **_record_rows(leaving, here, jnp.stack([ix, iy, iz], -1), new_band, True)),
+                lambda v: v,
+                volume,
+            )
+        acc_upd["volume"] = volume
     return out_lanes, acc._replace(**acc_upd)
 
 

@@ -35,6 +35,12 @@ class SpectralConfig(eqx.Module):
     def slots(self) -> int:
         return len(self.active)
 
+    @property
+    def track_path(self) -> bool:
+        """Lanes carry path statistics (L, n per medium): shared paths need them for their band
+        weights; per-band photons carry them only when records are kept (records report them)."""
+        return self.shared or self.records.any
+
 
 class _Lanes(NamedTuple):
     x: Array
@@ -45,8 +51,8 @@ class _Lanes(NamedTuple):
     uz: Array
     w: Array  # per_band: the photon's weight; shared: the carrier's weight W
     spectrum: Array | None  # shared: s [lanes, slots]
-    path: Array | None  # shared: L [lanes, media] since the last reset [cm]
-    hits: Array | None  # shared: n [lanes, media] since the last reset
+    path: Array | None  # track_path: L [lanes, media] since launch or the last conversion [cm]
+    hits: Array | None  # track_path: n [lanes, media] since launch or the last conversion
     sleft: Array
     layer: Array
     medium: Array
@@ -69,6 +75,7 @@ class _Buffer(NamedTuple):
     hits: Array | None
     band: Array
     converted: Array
+    emission: Array  # [cap] bool: a conversion point (isotropic emission), not an arrival
     photon: Array
     count: Array
     overflow: Array
@@ -145,9 +152,9 @@ def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:
         position=jnp.zeros((capacity, 3), dtype), direction=jnp.zeros((capacity, 3), dtype),
         w=jnp.zeros(capacity, dtype),
         spectrum=jnp.zeros((capacity, config.slots), dtype) if shared else None,
-        path=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
-        hits=jnp.zeros((capacity, config.num_media), dtype) if shared else None,
-        band=jnp.zeros(capacity, jnp.int32), converted=jnp.zeros(capacity, bool),
+        path=jnp.zeros((capacity, config.num_media), dtype) if config.track_path else None,
+        hits=jnp.zeros((capacity, config.num_media), dtype) if config.track_path else None,
+        band=jnp.zeros(capacity, jnp.int32), converted=jnp.zeros(capacity, bool), emission=jnp.zeros(capacity, bool),
         photon=jnp.zeros(capacity, jnp.int64), count=jnp.zeros((), jnp.int64), overflow=jnp.zeros((), jnp.int64),
     )
 
@@ -173,7 +180,7 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
     zi = jnp.zeros(lanes, jnp.int32)
     zu = jnp.zeros(lanes, jnp.uint32)
     shared = config.shared
-    per_medium = (lambda: jnp.zeros((lanes, config.num_media), dtype)) if shared else (lambda: None)
+    per_medium = (lambda: jnp.zeros((lanes, config.num_media), dtype)) if config.track_path else (lambda: None)
     return _Lanes(
         x=zf, y=zf, z=zf, ux=zf, uy=zf, uz=zf, w=zf,
         spectrum=jnp.zeros((lanes, config.slots), dtype) if shared else None,
