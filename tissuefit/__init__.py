@@ -64,3 +64,14 @@ from .transport import (  # noqa: E402
     trace_spectral as trace_spectral,
     trace_reference as trace_reference,
 )
+from . import photonmap as photonmap  # noqa: E402
+from .photonmap import (  # noqa: E402
+    SurfaceMap as SurfaceMap,
+    VolumeMap as VolumeMap,
+    build_surface_map as build_surface_map,
+    build_volume_map as build_volume_map,
+    estimate_surface as estimate_surface,
+    estimate_volume as estimate_volume,
+    knn_radius as knn_radius,
+    update_map as update_map,
+)

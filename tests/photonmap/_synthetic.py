@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from tissuefit.transport._records import PhotonRecords
+from tissuefit import PhotonRecords
 
 
 def records(position, power, direction=None, *, count=None, overflow=0) -> PhotonRecords:

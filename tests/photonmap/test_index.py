@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import tissuefit.photonmap as pm
-from tissuefit.transport._records import PhotonRecords
+from tissuefit import PhotonRecords
 
 from ._synthetic import records
 
