@@ -17,6 +17,8 @@ demo: $(STAMP)
 	@echo "wrote out/demo/paper_tissue.json and out/demo/paper_tissue.png"
 	$(BIN)/tissuefit simulate data_spec/examples/paper_fluorescence.toml --photons 1000000 --out out/demo --plot
 	@echo "wrote out/demo/paper_fluorescence.json and out/demo/paper_fluorescence.png"
+	$(BIN)/tissuefit render data_spec/examples/paper_lesion_render.toml --out out/demo/render
+	@echo "wrote out/demo/render/paper_lesion_render.{tif,json}, out/demo/render/preview.png and out/demo/render/bands.png"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

@@ -4,6 +4,7 @@ The fake replaces `tissuefit.cli.trace` and returns a TraceResult of the right s
 tracer is exercised by the transport tests.
 """
 
+import hashlib
 import json
 from importlib.metadata import version
 from pathlib import Path
@@ -13,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tissuefit import TraceResult, cli
+from tissuefit import TraceResult, cli, io
 from tissuefit.io import read_mco
 
 EXAMPLES = Path(__file__).parents[1] / "data_spec" / "examples"
@@ -355,3 +356,185 @@ def test_simulate_a_small_spectral_scene_for_real(tmp_path, capsys):
     surface, volume = record["records"]["surface"], record["records"]["volume"]
     assert surface["capacity"] == 5000 and 0 < surface["count"] <= 5000 and surface["overflow"] == 0
     assert 0 < volume["count"] <= 5000
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+
+LESION = str(EXAMPLES / "paper_lesion_render.toml")
+RENDER_FILES = ["bands.png", "paper_lesion_render.json", "paper_lesion_render.tif", "preview.png"]
+
+
+class FakeRender:
+    """Records each call and returns an object with a RenderResult's fields (no tracing): radiance
+    1e-3 in every band, the fluorescence part 1e-5 in the last band."""
+
+    def __init__(self, error=None):
+        self.calls, self.error = [], error
+
+    def __call__(self, tissue, endoscope, *, spectrum, photons, key, options, trace_options, chunks, progress):
+        from types import SimpleNamespace
+
+        from tests.io.conftest import fake_spectral_result
+        from tissuefit import RecordSpec, SpectralScene
+
+        self.calls.append(dict(tissue=tissue, endoscope=endoscope, spectrum=spectrum, photons=photons, key=key,
+                               options=options, trace_options=trace_options, chunks=chunks))
+        if self.error:
+            raise ValueError(self.error)
+        progress(photons)
+        nb, h, w = tissue.bands.num_bands, endoscope.height, endoscope.width
+        fluor = np.zeros((nb, h, w))
+        fluor[-1] = 1e-5
+        trace = fake_spectral_result(SpectralScene(tissue, spectrum=spectrum), photons=photons, records=RecordSpec())
+        return SimpleNamespace(
+            stack=np.full((nb, h, w), 1e-3) + fluor, surface=np.full((nb, h, w), 1e-3), fluorescence=fluor,
+            specular=np.zeros((nb, h, w)), wavelengths=tissue.bands.wavelengths, covered=np.ones((h, w), bool),
+            hit=np.ones((h, w), bool), truncation=np.full(nb, 0.007), surface_radius=0.01, volume_radius=0.02,
+            step_length=0.0045, surface_photons=100, volume_photons=200, emission_photons=30,
+            photons=photons - 1, launched_fraction=(photons - 1) / photons,
+            timings={"trace": 1.0, "maps": 0.5, "estimate": 0.25}, trace=trace)
+
+
+@pytest.fixture
+def fake_render(monkeypatch):
+    renderer = FakeRender()
+    monkeypatch.setattr(cli, "render", renderer)
+    return renderer
+
+
+def test_render_writes_the_stack_the_pictures_and_the_echo(fake_render, tmp_path, capsys):
+    out = tmp_path / "a" / "render"
+    argv = ["render", LESION, "--out", str(out), "--json", "--photons", "50", "--seed", "7", "--beta", "30",
+            "--width", "8", "--height", "6"]
+    assert cli.main(argv) == 0
+    sidecar = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir()) == RENDER_FILES  # no temporary files left
+    assert sidecar == json.loads((out / "paper_lesion_render.json").read_text())
+    (call,) = fake_render.calls
+    assert call["photons"] == 50 and call["chunks"] == 1
+    assert (call["endoscope"].beta_deg, call["endoscope"].width, call["endoscope"].height) == (30.0, 8, 6)
+    assert call["endoscope"].distance == 0.5 and call["options"].steps == 5 and call["options"].halton is True
+    np.testing.assert_array_equal(jax.random.key_data(call["key"]), jax.random.key_data(jax.random.key(7)))
+    stack = io.read_stack(out / "paper_lesion_render.tif")
+    assert stack.shape == (21, 6, 8) and stack.kind == "render" and stack.units == io.RENDER_UNITS
+    np.testing.assert_allclose(stack.data[0], 1e-3, rtol=1e-6)
+    # the echo: the resolved scene with the overrides, settings as used, counts, timings, provenance
+    assert sidecar["scene"]["endoscope"] | {"beta_deg": 30.0, "width": 8, "height": 6} == sidecar["scene"]["endoscope"]
+    assert sidecar["scene"]["render"]["photons"] == 50 and sidecar["scene"]["render"]["seed"] == 7
+    assert sidecar["geometry"]["endoscope"] == sidecar["scene"]["endoscope"]
+    record = sidecar["render"]
+    assert record["settings"]["surface_radius_cm"] == 0.01 and record["settings"]["step_length_cm"] == 0.0045
+    assert record["photons"] == 50 and record["photons_traced"] == 49 and record["records"]["emission"] == 30
+    assert set(record["timings_s"]) == {"trace", "maps", "estimate", "total"}
+    prov = sidecar["provenance"]
+    assert prov["seed"] == 7 and prov["photons"] == 50 and prov["tissuefit_version"] == version("tissuefit")
+    assert prov["scene_sha256"] == hashlib.sha256(Path(LESION).read_bytes()).hexdigest()
+    assert sidecar["illumination"]["spectrum"]["kind"] == "violet_led"
+    from PIL import Image
+
+    for name in ("preview.png", "bands.png"):
+        with Image.open(out / name) as png:  # the pictures carry the provenance in PNG text chunks
+            assert png.format == "PNG" and '"seed": 7' in png.text["Description"]
+    with Image.open(out / "preview.png") as png:
+        assert png.size == (8, 6) and png.mode == "RGB"
+
+
+def test_render_summary_and_the_file_seed(fake_render, tmp_path, capsys):
+    assert cli.main(["render", LESION, "--out", str(tmp_path), "--width", "4", "--height", "4"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("paper_lesion_render (")
+    assert "4 x 4 pixels, 21 bands 400–720 nm, beta 20 deg, seed 3" in lines[0]
+    assert "300000 photons launched, 299999 traced" in lines[1]
+    assert lines[-1].startswith("  wrote ") and "preview.png" in lines[-1]
+    (call,) = fake_render.calls
+    assert call["photons"] == 300_000 and call["chunks"] == 300_000 // cli.RENDER_PHOTONS_PER_CHUNK
+    assert cli.main(["check", LESION]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "    render: 256 x 256 pixels, beta 20 deg, 300000 photons"
+
+
+@pytest.mark.parametrize(
+    "scene, extra, expected",
+    [
+        (LESION, ["--beta", "90"], "--beta = 90 deg is out of range; allowed [0, 90) deg"),
+        (LESION, ["--width", "0"], "--width = 0 is out of range; allowed [1, 8192]"),
+        (LESION, ["--photons", "0"], "--photons = 0 is out of range; allowed [1, 4294967295]"),
+        (LESION, ["--seed", "-1"], "--seed = -1 is out of range"),
+        (LESION, ["--beta", "85"], "a light or the camera is at or below the tissue surface"),
+        (PAPER, [], "a single-band scene cannot be rendered; a render needs a spectral scene"),
+        (MCI, [], "a render needs a spectral scene file (.toml"),
+        ("missing.toml", [], "missing.toml: no such file"),
+    ],
+    ids=["beta", "width", "photons", "seed", "geometry", "single-band", "mci", "missing"],
+)
+def test_render_invalid_input_exits_2_and_writes_nothing(fake_render, tmp_path, capsys, scene, extra, expected):
+    out = tmp_path / "out"
+    assert cli.main(["render", scene, "--out", str(out), *extra]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and expected in captured.err and "Traceback" not in captured.err
+    assert fake_render.calls == [] and not out.exists()
+
+
+def test_render_refuses_a_bad_file_an_out_file_and_a_failing_render(monkeypatch, tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(LESION).read_text().replace("beta_deg = 20.0", "beta_deg = -5.0"))
+    assert cli.main(["render", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert f"{bad}: endoscope.beta_deg = -5 is out of range; allowed [0, 90) deg" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert cli.main(["render", LESION, "--out", str(tmp_path / "file")]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+    empty = "render: the photon map is empty (no records); trace more photons"
+    monkeypatch.setattr(cli, "render", FakeRender(error=empty))
+    assert cli.main(["render", LESION, "--out", str(tmp_path / "o"), "--photons", "3"]) == 2
+    assert "paper_lesion_render.toml: render: the photon map is empty" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+TINY_RENDER = """\
+format = "tissuefit-scene/1"
+name = "tiny"
+
+[bands]
+start_nm = 400
+stop_nm = 640
+spacing_nm = 80
+
+[[layers]]
+n = 1.37
+thickness = "inf"
+mua = 2.0
+mus = 100.0
+g = 0.8
+
+[run]
+photons = 1000
+
+[endoscope]
+beta_deg = 10.0
+width = 16
+height = 16
+
+[render]
+photons = 5000
+seed = 1
+"""
+
+
+def test_render_a_tiny_scene_for_real(tmp_path, capsys):
+    """The real renderer: 4 bands, no fluorophores, 16 x 16 pixels, 5000 photons."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY_RENDER)
+    out = tmp_path / "render"
+    assert cli.main(["render", str(scene), "--out", str(out), "--json"]) == 0
+    sidecar = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir()) == ["bands.png", "preview.png", "tiny.json", "tiny.tif"]
+    assert sidecar == json.loads((out / "tiny.json").read_text())
+    stack = io.read_stack(out / "tiny.json")
+    assert stack.shape == (4, 16, 16) and np.all(stack.data >= 0) and stack.data.mean() > 0
+    assert stack.provenance["seed"] == 1 and stack.provenance["photons"] == 5000
+    record = sidecar["render"]
+    assert 0 < record["photons_traced"] <= 5000 and record["records"]["surface"] > 0
+    assert record["records"]["volume"] == 0 and record["settings"]["volume_radius_cm"] is None  # no fluorophores
+    # white light on a non-fluorescent tissue: the preview is close to neutral
+    rgb = io.srgb_preview(stack).reshape(-1, 3).astype(float).mean(axis=0)
+    assert np.ptp(rgb) < 0.25 * rgb.max()

@@ -1,8 +1,10 @@
-"""Command line: `tissuefit simulate SCENE`, `tissuefit check SCENE`, `tissuefit --version`.
+"""Command line: `tissuefit simulate SCENE`, `tissuefit render SCENE --out DIR`, `tissuefit check SCENE`,
+`tissuefit --version`.
 
 Thin by design: parse arguments → read and validate the scene file (tissuefit.io) → call
-`tissuefit.trace` (single-band scenes) or `tissuefit.trace_spectral` (spectral scenes) → print and
-write. Invalid input exits with status 2 and a one-paragraph message on stderr, never a traceback.
+`tissuefit.trace` (single-band scenes), `tissuefit.trace_spectral` (spectral scenes) or
+`tissuefit.render.render` (the endoscope's stack) → print and write. Invalid input exits with status 2
+and a one-paragraph message on stderr, never a traceback.
 """
 
 from __future__ import annotations
@@ -19,8 +21,10 @@ from pathlib import Path
 import jax
 
 from . import io
+from .render import render
 from .scene import Fluorophore
-from ._checks import check_positive_int
+from ._atomic import atomic_writer
+from ._checks import check_positive_int, check_range
 from .transport import trace, trace_spectral
 
 DEFAULT_SEED = 0
@@ -69,6 +73,23 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--plot", action="store_true",
                      help="with --out: also write <name>.png with the Rd(r), A(z) and Tt(r) profiles "
                           "(spectral scenes: rd and escaping fluorescence per band)")
+
+    ren = commands.add_parser(
+        "render", help="render the endoscope's multi-spectral stack of a spectral scene",
+        description="Render SCENE (a spectral .toml scene; its [endoscope] and [render] tables, data_spec/scene.md) "
+                    "and write DIR/<name>.tif with its sidecar DIR/<name>.json (data_spec/stack.md), an sRGB "
+                    "DIR/preview.png and a contact sheet DIR/bands.png.",
+    )
+    ren.add_argument("scene", metavar="SCENE", help="spectral scene file (.toml)")
+    ren.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for the stack and the pictures")
+    ren.add_argument("--photons", type=int, metavar="N", help="photons launched from the lights (overrides [render])")
+    ren.add_argument("--seed", type=int, metavar="S",
+                     help=f"PRNG seed (overrides the file's render.seed, then run.seed; default {DEFAULT_SEED})")
+    ren.add_argument("--beta", type=float, metavar="DEG", help="tilt of the head [deg] (overrides endoscope.beta_deg)")
+    ren.add_argument("--width", type=int, metavar="W", help="image width [pixels] (overrides endoscope.width)")
+    ren.add_argument("--height", type=int, metavar="H", help="image height [pixels] (overrides endoscope.height)")
+    ren.add_argument("--json", action="store_true", help="print the stack's sidecar (scene echo, settings, counts, "
+                                                         "timings) as JSON instead of a summary")
 
     check = commands.add_parser("check", help="validate a scene file without running it",
                                 description="Validate SCENE (.toml or .mci), single-band or spectral, and report "
@@ -262,6 +283,114 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+RENDER_PHOTONS_PER_CHUNK = 50_000
+"""A render traces its launches in chunks of about this many, so that the progress bar moves (the
+paper's 300 000 photons: 6 chunks); results do not depend on the chunking."""
+
+
+def _render_run(path: str) -> io.SpectralRun:
+    if Path(path).suffix.lower() != ".toml":
+        raise _InvalidInput(f"{path}: a render needs a spectral scene file (.toml, data_spec/scene.md); "
+                            f"found {Path(path).suffix or '(no extension)'!r}")
+    (run,) = _load(path)
+    if not isinstance(run, io.SpectralRun):
+        raise _InvalidInput(f"{path}: a single-band scene cannot be rendered; a render needs a spectral scene "
+                            "(data_spec/scene.md, \"Spectral scenes\"): add an [endoscope] table, [bands] or "
+                            "[source.spectrum]")
+    return run
+
+
+def _resolve_render(run: io.SpectralRun, args: argparse.Namespace) -> tuple[io.RenderSpec, int]:
+    """The render settings with the command line's overrides applied, and the seed (checked)."""
+    spec = run.render or io.RenderSpec()
+    seed = next((s for s in (args.seed, spec.seed, run.seed) if s is not None), DEFAULT_SEED)
+    if not 0 <= seed <= _MAX_SEED:
+        raise _InvalidInput(f"--seed = {seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    try:
+        geometry = {}
+        if args.beta is not None:
+            check_range("--beta", args.beta, unit="deg", low=0.0, high=90.0, high_open=True)
+            geometry["beta_deg"] = float(args.beta)
+        for name in ("width", "height"):
+            if getattr(args, name) is not None:
+                geometry[name] = check_positive_int(f"--{name}", getattr(args, name), high=8192)
+        changes = {"seed": seed}
+        if args.photons is not None:
+            changes["photons"] = check_positive_int("--photons", args.photons, high=io.MAX_PHOTONS)
+        if geometry:
+            changes["endoscope"] = dataclasses.replace(spec.endoscope, **geometry)
+        return dataclasses.replace(spec, **changes), seed
+    except (ValueError, TypeError) as err:
+        raise _InvalidInput(str(err)) from None
+
+
+def _render_summary(sidecar: dict, files: list[Path]) -> str:
+    record, endo = sidecar["render"], sidecar["geometry"]["endoscope"]
+    wl, times = sidecar["wavelengths_nm"], record["timings_s"]
+    settings, counts = record["settings"], record["records"]
+    volume = settings["volume_radius_cm"]
+    lines = [
+        f"{sidecar['name']} ({sidecar['provenance']['scene_file']}): {endo['width']} x {endo['height']} pixels, "
+        f"{len(wl)} bands {wl[0]:g}–{wl[-1]:g} nm, beta {endo['beta_deg']:g} deg, seed {sidecar['provenance']['seed']}",
+        f"  {record['photons']} photons launched, {record['photons_traced']} traced "
+        f"({100 * record['launched_fraction']:.1f} % of the lights' power reaches the view); "
+        f"{times['total']:.3g} s (trace {times.get('trace', 0):.3g} s, maps {times.get('maps', 0):.3g} s, "
+        f"estimate {times.get('estimate', 0):.3g} s)",
+        f"  records: surface {counts['surface']}, volume {counts['volume']}, emission {counts['emission']}; "
+        f"radii: surface {settings['surface_radius_cm']:.3g} cm"
+        + (f", volume {volume:.3g} cm" if volume is not None else "")
+        + f"; {settings['steps']} steps of {settings['step_length_cm']:.3g} cm",
+        f"  pixels: {100 * record['hit_fraction']:.1f} % see the tissue, {100 * record['covered_fraction']:.1f} % "
+        "reached by a surface record",
+        "  wrote " + ", ".join(str(f) for f in files),
+    ]
+    if record["trace"]["budget_exhausted"]:
+        lines.append("  WARNING: step budget exhausted; the stack is incomplete")
+    if record["covered_fraction"] < record["hit_fraction"]:
+        lines.append("  note: some pixels that see the tissue got no surface record (dark); trace more photons")
+    return "\n".join(lines)
+
+
+def _render(args: argparse.Namespace) -> int:
+    run = _render_run(args.scene)
+    spec, seed = _resolve_render(run, args)
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    from tqdm import tqdm
+
+    chunks = int(min(100, max(1, spec.photons // RENDER_PHOTONS_PER_CHUNK)))
+    start = time.perf_counter()
+    with tqdm(total=spec.photons, desc=f"{run.name}: trace", unit="photon", unit_scale=True, file=sys.stderr,
+              disable=None if chunks > 1 else True, leave=False) as bar:
+        def progress(done: int) -> None:
+            bar.update(done - bar.n)
+
+        try:
+            result = render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
+                            key=jax.random.key(seed), options=spec.options, trace_options=run.options,
+                            chunks=chunks, progress=progress)
+        except ValueError as err:
+            raise _InvalidInput(f"{args.scene}: {err}") from None
+    seconds = time.perf_counter() - start
+    stack = io.render_stack(run, spec, result, seed=seed, seconds=seconds)
+    # everything is computed before the first file is written; each file is written atomically
+    pictures = {"preview.png": io.preview_png(stack),
+                "bands.png": io.contact_sheet_png(stack, title=f"{run.name}: beta {spec.endoscope.beta_deg:g} deg")}
+    out.mkdir(parents=True, exist_ok=True)
+    stem = _safe_name(run.name)
+    sidecar = io.write_stack(out / f"{stem}.tif", stack)
+    for name, payload in pictures.items():
+        with atomic_writer(out / name, binary=True) as handle:
+            handle.write(payload)
+    files = [out / f"{stem}.tif", out / f"{stem}.json", *(out / name for name in pictures)]
+    if args.json:
+        print(json.dumps(sidecar, indent=2, allow_nan=False))
+    else:
+        print(_render_summary(sidecar, files), flush=True)
+    return 0
+
+
 def _check(args: argparse.Namespace) -> int:
     runs = _load(args.scene)
     print(f"ok: {len(runs)} run(s)")
@@ -273,6 +402,10 @@ def _check(args: argparse.Namespace) -> int:
             fluorophores = sum(isinstance(a, Fluorophore) for m in optics for a in m.absorbers)
             print(f"  {run.name}: spectral, {len(centres)} bands {centres[0]:g}–{centres[-1]:g} nm, "
                   f"{tissue.num_layers} layer(s), {len(tissue.regions)} region(s), {fluorophores} fluorophore(s)")
+            if run.render is not None:
+                endo = run.render.endoscope
+                print(f"    render: {endo.width} x {endo.height} pixels, beta {endo.beta_deg:g} deg, "
+                      f"{run.render.photons} photons")
     return 0
 
 
@@ -280,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `tissuefit` command; returns the exit status (2 for invalid input)."""
     args = _parser().parse_args(argv)
     try:
-        return _simulate(args) if args.command == "simulate" else _check(args)
+        return {"simulate": _simulate, "render": _render, "check": _check}[args.command](args)
     except _InvalidInput as err:
         print(f"tissuefit: error: {err}", file=sys.stderr)
         return EXIT_INVALID

@@ -1,5 +1,6 @@
 """Files: scene files (TOML, data_spec/scene.md; single-band or spectral), MCML's .mci input and
-.mco output, JSON run records and their plots.
+.mco output, JSON run records and their plots, multi-spectral stacks (TIFF + JSON sidecar,
+data_spec/stack.md) with their sRGB previews and contact sheets.
 
 This is the only package that reads or writes files. Every reader validates before anything runs
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
@@ -15,11 +16,35 @@ from ._report import (
     write_json as write_json,
 )
 from ._plot import write_profile_plot as write_profile_plot, write_spectrum_plot as write_spectrum_plot
-from ._run import MAX_PHOTONS as MAX_PHOTONS, Run as Run, SpectralRun as SpectralRun
+from ._preview import (
+    band_cmf as band_cmf,
+    contact_sheet_png as contact_sheet_png,
+    preview_png as preview_png,
+    srgb_preview as srgb_preview,
+    stack_to_xyz as stack_to_xyz,
+    write_contact_sheet as write_contact_sheet,
+    write_preview as write_preview,
+)
+from ._renderfile import render_stack as render_stack
+from ._run import (
+    MAX_PHOTONS as MAX_PHOTONS,
+    RenderSpec as RenderSpec,
+    Run as Run,
+    SpectralRun as SpectralRun,
+)
 from ._scenefile import (
     load_runs as load_runs,
     read_scene as read_scene,
     scene_from_dict as scene_from_dict,
     scene_schema as scene_schema,
+    render_to_dict as render_to_dict,
     scene_to_dict as scene_to_dict,
+)
+from ._schema import stack_schema as stack_schema
+from ._stack import (
+    RENDER_UNITS as RENDER_UNITS,
+    SpectralStack as SpectralStack,
+    make_stack as make_stack,
+    read_stack as read_stack,
+    write_stack as write_stack,
 )

@@ -1,6 +1,7 @@
 """A run: one simulation a file asks for (scene, photon count, tallies, options, seed).
 
-`Run` is a single-band simulation (`trace`); `SpectralRun` a multi-spectral one (`trace_spectral`).
+`Run` is a single-band simulation (`trace`); `SpectralRun` a multi-spectral one (`trace_spectral`),
+which may also carry a `RenderSpec` (its `[endoscope]` and `[render]` tables, for `render`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from typing import Literal
 import equinox as eqx
 
 from .._checks import check_positive_int
+from ..render import Endoscope, RenderOptions
 from ..scene import Scene, SpectralScene
 from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
 
@@ -54,6 +56,37 @@ class Run(eqx.Module):
             raise ValueError(f"mco_format = {self.mco_format!r}; allowed 'A', 'B' or None")
 
 
+DEFAULT_RENDER_PHOTONS = 300_000
+"""Photons a render launches when `[render]` gives no `photons` (the paper's count per map)."""
+
+
+class RenderSpec(eqx.Module):
+    """What `tissuefit render` does with a spectral scene: the `[endoscope]` and `[render]` tables.
+
+    Fields:
+    - `endoscope`: the head's geometry (`tissuefit.render.Endoscope`).
+    - `options`: how radiance is estimated (`tissuefit.render.RenderOptions`).
+    - `photons`: photons launched from the lights, 1 .. `MAX_PHOTONS` (default 300 000).
+    - `seed`: the render's PRNG seed, or None (then the command line's, else `SpectralRun.seed`, else 0).
+
+    Plain data; use `dataclasses.replace` to override a field.
+    """
+
+    endoscope: Endoscope = eqx.field(static=True, default_factory=Endoscope)
+    options: RenderOptions = eqx.field(static=True, default_factory=RenderOptions)
+    photons: int = eqx.field(static=True, default=DEFAULT_RENDER_PHOTONS)
+    seed: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        check_positive_int("render.photons", self.photons, high=MAX_PHOTONS)
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, int)):
+            raise TypeError(f"render.seed = {self.seed!r} must be an integer or None")
+        if not isinstance(self.endoscope, Endoscope):
+            raise TypeError(f"render.endoscope is a {type(self.endoscope).__name__}, not an Endoscope")
+        if not isinstance(self.options, RenderOptions):
+            raise TypeError(f"render.options is a {type(self.options).__name__}, not RenderOptions")
+
+
 class SpectralRun(eqx.Module):
     """One multi-spectral simulation read from a scene file that uses spectral features
     (data_spec/scene.md, "Spectral scenes"); traced by `trace_spectral`.
@@ -66,6 +99,9 @@ class SpectralRun(eqx.Module):
       as JSON text: defaults filled in, file names absolute. `scene_to_dict` adds the run settings
       from the fields above, so command-line overrides are echoed too.
     - `input_files`: (absolute path, sha256) of every table and EEM file the scene read.
+    - `render`: the file's `[endoscope]` and `[render]` tables as a `RenderSpec`, or None when it has
+      neither (`tissuefit render` then uses `RenderSpec()`); `scene_to_dict` echoes them when present.
+    - `source_sha256`: SHA-256 of the scene file's bytes (None for a document not read from a file).
 
     Plain data for files and the CLI; use `dataclasses.replace(run, photons=...)` to override a field.
     """
@@ -80,6 +116,8 @@ class SpectralRun(eqx.Module):
     source_file: str = eqx.field(static=True, default="<memory>")
     document: str = eqx.field(static=True, default="{}")
     input_files: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
+    render: RenderSpec | None = eqx.field(static=True, default=None)
+    source_sha256: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         check_positive_int("run.photons", self.photons, high=MAX_PHOTONS)

@@ -14,6 +14,8 @@ A file that uses no spectral feature is a single-band `Run` (`trace`); one that 
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
 import tomllib
@@ -26,7 +28,7 @@ from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
 from ..transport._spectral import resolve_config
 from . import _spectralfile
 from ._mci import read_mci
-from ._run import Run, SpectralRun
+from ._run import DEFAULT_RENDER_PHOTONS, RenderSpec, Run, SpectralRun
 from ._schema import scene_schema as scene_schema, validate_scene_dict as validate_scene_dict
 
 FORMAT = "tissuefit-scene/1"
@@ -143,6 +145,15 @@ def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: P
     optics = [_spectralfile.build_optics(ctx, layer, f"layers[{i}]") for i, layer in enumerate(layers)]
     regions = [_spectralfile.build_region(ctx, region, f"regions[{k}]", depths)
                for k, region in enumerate(doc.get("regions", []))]
+    render = None
+    if "endoscope" in doc or "render" in doc:
+        endoscope = _spectralfile.build_endoscope(ctx, doc.get("endoscope"))
+        render_options = _spectralfile.build_render_options(ctx, doc.get("render"))
+        if endoscope is not None and render_options is not None:
+            render_doc = doc.get("render", {})
+            render = RenderSpec(endoscope=endoscope, options=render_options,
+                                photons=int(render_doc.get("photons", DEFAULT_RENDER_PHOTONS)),
+                                seed=int(render_doc["seed"]) if "seed" in render_doc else None)
     if ctx.problems:
         refuse(ctx.problems)
     try:
@@ -176,7 +187,7 @@ def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: P
     return SpectralRun(
         name=document["name"], scene=scene, photons=int(run["photons"]), options=options, spectral=spectral,
         records=records, seed=int(run["seed"]) if "seed" in run else None, source_file=source_file,
-        document=json.dumps(document), input_files=tuple(sorted(ctx.files.items())),
+        document=json.dumps(document), input_files=tuple(sorted(ctx.files.items())), render=render,
     )
 
 
@@ -203,14 +214,18 @@ def read_scene(path) -> Run | SpectralRun:
     the field, the value, its unit and the allowed range for any problem, before anything runs.
     """
     name = str(path)
+    with open(path, "rb") as handle:
+        data = handle.read()
     try:
-        with open(path, "rb") as handle:
-            doc = tomllib.load(handle)
+        doc = tomllib.loads(data.decode("utf-8"))
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{name}: TOML syntax error: {err}") from None
     except UnicodeDecodeError as err:
         raise ValueError(f"{name}: not a UTF-8 text file (TOML): {err.reason} at byte {err.start}") from None
-    return scene_from_dict(doc, source_file=name, default_name=Path(path).stem)
+    run = scene_from_dict(doc, source_file=name, default_name=Path(path).stem)
+    if isinstance(run, SpectralRun):
+        run = dataclasses.replace(run, source_sha256=hashlib.sha256(data).hexdigest())
+    return run
 
 
 def load_runs(path) -> list[Run | SpectralRun]:
@@ -269,7 +284,17 @@ def _spectral_to_dict(run: SpectralRun) -> dict:
     doc["run"] = {**_run_to_dict(run), "spectral_mode": run.spectral.mode,
                   "conversion_boost": float(run.spectral.conversion_boost)}
     doc["records"] = {k: getattr(run.records, k) for k in _RECORD_KEYS}
+    if run.render is not None:
+        doc.update(render_to_dict(run.render))
     return doc
+
+
+def render_to_dict(spec: RenderSpec) -> dict:
+    """The `[endoscope]` and `[render]` tables of a `RenderSpec` (resolved: defaults filled in;
+    automatic bandwidths and step length, and a seed of None, left out)."""
+    render = {"photons": int(spec.photons), **({"seed": int(spec.seed)} if spec.seed is not None else {}),
+              **_spectralfile.render_options_to_dict(spec.options)}
+    return {"endoscope": _spectralfile.endoscope_to_dict(spec.endoscope), "render": render}
 
 
 def _source_to_dict(source) -> dict:

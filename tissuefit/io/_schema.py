@@ -1,7 +1,8 @@
-"""The scene format's JSON Schema (`scene.schema.json`) and the sentences its errors become.
+"""The file formats' JSON Schemas (`scene.schema.json`, `stack.schema.json`) and the sentences
+their errors become.
 
 Every message names the field (a path such as `layers[0].absorbers[1].mua`), the value, its unit and
-the allowed range, in the words of data_spec/scene.md; `validate_scene_dict` prefixes the file.
+the allowed range, in the words of data_spec/; `validate_scene_dict` and `validate_document` prefix the file.
 """
 
 from __future__ import annotations
@@ -14,15 +15,23 @@ from collections.abc import Iterable
 
 import jsonschema
 
+SCENE_SCHEMA = "scene.schema.json"
+STACK_SCHEMA = "stack.schema.json"
+
 
 @functools.cache
-def _schema_text() -> str:
-    return importlib.resources.files(__package__).joinpath("scene.schema.json").read_text(encoding="utf-8")
+def _schema_text(name: str = SCENE_SCHEMA) -> str:
+    return importlib.resources.files(__package__).joinpath(name).read_text(encoding="utf-8")
 
 
 def scene_schema() -> dict:
     """The JSON Schema of the scene format (a fresh copy of the package's `scene.schema.json`)."""
     return json.loads(_schema_text())
+
+
+def stack_schema() -> dict:
+    """The JSON Schema of a stack's sidecar (a fresh copy of the package's `stack.schema.json`)."""
+    return json.loads(_schema_text(STACK_SCHEMA))
 
 
 def _finite_type(validator, types, instance, schema):
@@ -40,14 +49,19 @@ _Validator = jsonschema.validators.extend(jsonschema.Draft202012Validator, {"typ
 
 
 @functools.cache
+def schema_cached(name: str = SCENE_SCHEMA) -> dict:
+    """A schema, parsed once (do not modify; `scene_schema()` returns a copy to keep)."""
+    return json.loads(_schema_text(name))
+
+
 def scene_schema_cached() -> dict:
-    """The schema, parsed once (do not modify; `scene_schema()` returns a copy to keep)."""
-    return json.loads(_schema_text())
+    """The scene schema, parsed once (do not modify)."""
+    return schema_cached(SCENE_SCHEMA)
 
 
 @functools.cache
-def _validator():
-    return _Validator(scene_schema_cached())
+def _validator(name: str = SCENE_SCHEMA):
+    return _Validator(schema_cached(name))
 
 
 def _path(parts: Iterable) -> str:
@@ -96,9 +110,8 @@ def _types(node: dict) -> list[str]:
     return [t] if isinstance(t, str) else list(t)
 
 
-def _resolve(node):
-    """Follow local `$ref`s (`#/$defs/...`) to the node they name."""
-    root = scene_schema_cached()
+def _resolve(node, root: dict):
+    """Follow local `$ref`s (`#/$defs/...`) in `root` to the node they name."""
     while isinstance(node, dict) and "$ref" in node:
         target = root
         for part in node["$ref"].removeprefix("#/").split("/"):
@@ -107,28 +120,28 @@ def _resolve(node):
     return node
 
 
-def _key_description(error: jsonschema.ValidationError, key: str) -> str:
+def _key_description(error: jsonschema.ValidationError, key: str, root: dict) -> str:
     """The description of property `key` for a `required` error: taken from the nearest schema node on
     the error's schema path that declares the property (a kind branch or rule has none of its own)."""
-    node, chain = scene_schema_cached(), []
+    node, chain = root, []
     for part in list(error.absolute_schema_path)[:-1]:
         if isinstance(node, dict) and part not in node:
-            node = _resolve(node)  # the path steps through $refs without naming them
+            node = _resolve(node, root)  # the path steps through $refs without naming them
         try:
             node = node[part]
         except (KeyError, IndexError, TypeError):
             break
         chain.append(node)
     for candidate in reversed(chain):
-        candidate = _resolve(candidate)
+        candidate = _resolve(candidate, root)
         props = candidate.get("properties", {}) if isinstance(candidate, dict) else {}
-        entry = _resolve(props.get(key))
+        entry = _resolve(props.get(key), root)
         if isinstance(entry, dict) and entry.get("description"):
             return entry["description"]
     return ""
 
 
-def _describe(error: jsonschema.ValidationError) -> str:
+def _describe(error: jsonschema.ValidationError, root: dict) -> str:
     """One human sentence for a schema error: field path, value, unit and allowed range."""
     where = _path(error.absolute_path)
     node, value, kind = error.schema, error.instance, error.validator
@@ -146,7 +159,7 @@ def _describe(error: jsonschema.ValidationError) -> str:
         missing = [k for k in error.validator_value if k not in value]
         parts = []
         for key in missing:
-            description = _key_description(error, key)
+            description = _key_description(error, key, root)
             parts.append(f"{key!r}" + (f" ({description.rstrip('.')})" if description else ""))
         return f"{where}: missing required key {', '.join(parts)}"
     if kind == "additionalProperties":
@@ -173,11 +186,18 @@ def _describe(error: jsonschema.ValidationError) -> str:
     return f"{where}: {error.message}"
 
 
-def validate_scene_dict(doc: dict, *, source_file: str) -> None:
-    """Raise `ValueError` listing every schema violation of `doc`, one line each, prefixed by the file.
+def validate_document(doc: dict, *, schema: str, source_file: str) -> None:
+    """Raise `ValueError` listing every violation of `doc` against the package's schema file `schema`,
+    one line each, prefixed by the file.
 
-    Errors come in the schema's order (fields as data_spec/scene.md lists them); duplicates are dropped.
+    Errors come in the schema's order (fields as data_spec/ lists them); duplicates are dropped.
     """
-    messages = list(dict.fromkeys(_describe(e) for e in _validator().iter_errors(doc)))
+    root = schema_cached(schema)
+    messages = list(dict.fromkeys(_describe(e, root) for e in _validator(schema).iter_errors(doc)))
     if messages:
         raise ValueError("\n".join(f"{source_file}: {m}" for m in messages))
+
+
+def validate_scene_dict(doc: dict, *, source_file: str) -> None:
+    """`validate_document` against the scene schema (data_spec/scene.md)."""
+    validate_document(doc, schema=SCENE_SCHEMA, source_file=source_file)

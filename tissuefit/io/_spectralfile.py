@@ -1,4 +1,5 @@
-"""Spectral scene files: the band grid, the source spectrum, spectral optics of layers and regions.
+"""Spectral scene files: the band grid, the source spectrum, spectral optics of layers and regions,
+and the endoscope and render settings of `tissuefit render`.
 
 `_scenefile` validates the whole document against the schema first; the builders here turn its
 spectral parts into scene objects (`BandGrid`, spectra, `LayerOptics`, `Sphere`/`Box`/`VoxelGrid`)
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..render import Endoscope, RenderOptions
 from ..scene import (
     BandGrid,
     BandOverride,
@@ -43,10 +45,20 @@ from ..scene import (
     violet_led,
 )
 
-SPECTRAL_TOP_KEYS = ("bands", "regions", "records")
+SPECTRAL_TOP_KEYS = ("bands", "regions", "records", "endoscope", "render")
 SPECTRAL_RUN_KEYS = ("spectral_mode", "conversion_boost")
 SPECTRAL_LAYER_KEYS = ("absorbers", "scattering", "override")
 BAND_DEFAULTS = {"start_nm": 400.0, "stop_nm": 720.0, "spacing_nm": 16.0, "response": "boxcar"}
+ENDOSCOPE_KEYS = {"beta_deg": "beta_deg", "distance_cm": "distance", "separation_cm": "separation",
+                  "light_radius_cm": "light_radius", "cone_deg": "cone_deg", "fov_deg": "fov_deg",
+                  "width": "width", "height": "height", "target_cm": "target"}
+"""`[endoscope]` key -> `Endoscope` field."""
+RENDER_OPTION_KEYS = {"steps": "steps", "step_length_cm": "step_length", "kernel": "kernel",
+                      "surface_radius_cm": "surface_radius", "volume_radius_cm": "volume_radius", "k": "k",
+                      "neighbours": "neighbours", "fluorescence": "fluorescence", "angular": "angular",
+                      "specular_deg": "specular_deg", "halton": "halton"}
+"""`[render]` key -> `RenderOptions` field (besides `photons` and `seed`)."""
+_INTEGER_FIELDS = ("width", "height", "steps", "k", "neighbours")
 
 
 def is_spectral(doc: dict) -> bool:
@@ -452,3 +464,57 @@ def _voxel_grid(ctx: Context, doc: dict, where: str, optics: LayerOptics, layer:
                  + (f"; {more} more value(s) out of range too" if more else ""))
     grid = VoxelGrid(lower, upper, c, optics=optics, layer=layer)
     return grid, {"shape": list(grid.shape), "concentration_file": path}
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering: [endoscope] and [render]
+
+
+def build_endoscope(ctx: Context, doc: dict | None) -> Endoscope | None:
+    """The `Endoscope` of an `[endoscope]` table (defaults for absent keys; None and a problem
+    recorded when the geometry is impossible, e.g. a light below the surface)."""
+    doc = doc or {}
+    fields = {name: (tuple(float(v) for v in doc[key]) if key == "target_cm"
+                     else int(doc[key]) if name in _INTEGER_FIELDS else float(doc[key]))
+              for key, name in ENDOSCOPE_KEYS.items() if key in doc}
+    return _attempt_named(ctx, "endoscope", lambda: Endoscope(**fields))
+
+
+def build_render_options(ctx: Context, doc: dict | None) -> RenderOptions | None:
+    """The `RenderOptions` of a `[render]` table (its `photons` and `seed` are the run's, not options)."""
+    doc = doc or {}
+    fields = {}
+    for key, name in RENDER_OPTION_KEYS.items():
+        if key in doc:
+            value = doc[key]
+            fields[name] = int(value) if name in _INTEGER_FIELDS else value if isinstance(value, (bool, str)) \
+                else float(value)
+    return _attempt_named(ctx, "render", lambda: RenderOptions(**fields))
+
+
+def _attempt_named(ctx: Context, where: str, build):
+    """`ctx.attempt`, for constructors whose messages already start with the table's name."""
+    try:
+        return build()
+    except (ValueError, TypeError) as err:
+        text = str(err)
+        ctx.problems.append(text if text.startswith(where) else f"{where}: {text}")
+        return None
+
+
+def endoscope_to_dict(endoscope: Endoscope) -> dict:
+    """The `[endoscope]` table of an `Endoscope`, every key given (units in the key names)."""
+    return {key: ([float(v) for v in getattr(endoscope, name)] if key == "target_cm"
+                  else int(getattr(endoscope, name)) if name in _INTEGER_FIELDS else float(getattr(endoscope, name)))
+            for key, name in ENDOSCOPE_KEYS.items()}
+
+
+def render_options_to_dict(options: RenderOptions) -> dict:
+    """The option keys of a `[render]` table from `RenderOptions` (automatic choices, None, left out)."""
+    out = {}
+    for key, name in RENDER_OPTION_KEYS.items():
+        value = getattr(options, name)
+        if value is None:
+            continue
+        out[key] = value if isinstance(value, (bool, str)) else int(value) if name in _INTEGER_FIELDS else float(value)
+    return out

@@ -1,0 +1,85 @@
+"""The sRGB preview and the contact sheet of a stack (data_spec/stack.md, "Preview", "Contact sheet")."""
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.image  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from tissuefit.io import band_cmf, make_stack, srgb_preview, write_contact_sheet, write_preview  # noqa: E402
+
+WAVELENGTHS = 400.0 + 16.0 * np.arange(21)  # the camera's bands, 16 nm boxcars
+WIDTHS = np.full(21, 16.0)
+
+
+def measured(data, wavelengths=WAVELENGTHS, widths=WIDTHS, response="boxcar"):
+    return make_stack(data, wavelengths=wavelengths, widths=widths, response=response, kind="measured", units="-")
+
+
+def test_cmf_means_of_an_equal_energy_spectrum_are_white():
+    """1 nm boxcars over the observer's whole range: an equal-energy spectrum has X = Y = Z (CIE 1931's
+    normalisation of illuminant E), and a band's weight is the CMF's mean over it."""
+    centres = np.arange(360.5, 830.0, 1.0)
+    xyz = np.ones(centres.size) @ band_cmf(centres, np.ones(centres.size))
+    np.testing.assert_allclose(xyz / xyz[1], 1.0, atol=2e-3)
+    m = band_cmf([555.0], [1e-3], "boxcar")[0]
+    np.testing.assert_allclose(m, band_cmf([555.0], [1.0], "delta")[0], rtol=1e-5)  # a narrow boxcar is its centre
+    np.testing.assert_allclose(m[1], 1.0, atol=1e-3)  # ybar(555 nm) = 1
+    # a Gaussian band (FWHM 16 nm): the CMFs weighted by it, by a plain sum on a 0.01 nm grid
+    import colour
+
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    x = np.arange(480.0, 630.0, 0.01)
+    w = np.exp(-0.5 * ((x - 555.0) / (16.0 / 2.3548200450309493)) ** 2)
+    expected = [np.sum(w * np.interp(x, cmfs.wavelengths, cmfs.values[:, k])) / np.sum(w) for k in range(3)]
+    np.testing.assert_allclose(band_cmf([555.0], [16.0], "gaussian")[0], expected, rtol=1e-4)
+
+
+def test_a_flat_stack_is_neutral_grey_at_every_level():
+    """Equal energy in every band (sample = band width x level), levels ramping across the image:
+    every pixel has R = G = B within one 8-bit step."""
+    level = np.linspace(0.0, 1.0, 64).reshape(8, 8)
+    rgb = srgb_preview(measured(WIDTHS[:, None, None] * level[None]))
+    assert rgb.shape == (8, 8, 3) and rgb.dtype == np.uint8
+    spread = rgb.max(axis=-1).astype(int) - rgb.min(axis=-1).astype(int)
+    assert spread.max() <= 1
+    assert rgb[0, 0].tolist() == [0, 0, 0] and rgb[-1, -1].min() >= 254  # exposure: the top percentile -> white
+    grey = rgb[..., 1].reshape(-1).astype(int)
+    assert np.all(np.diff(grey) >= 0)  # monotonic in the level
+
+
+def test_light_only_in_the_640_nm_band_is_red():
+    data = np.zeros((21, 4, 4))
+    data[list(WAVELENGTHS).index(640.0)] = 1e-6
+    rgb = srgb_preview(measured(data)).astype(int)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    assert np.all(r == 255) and np.all(g < 100) and np.all(b < 100)
+
+
+def test_violet_light_is_blue_violet_and_a_black_stack_stays_black():
+    data = np.zeros((21, 2, 2))
+    data[0] = 1.0  # 392-408 nm
+    r, g, b = srgb_preview(measured(data)).astype(int)[0, 0]
+    assert b == 255 and r > g and r < b
+    assert srgb_preview(measured(np.zeros((21, 2, 2)))).max() == 0
+    with pytest.raises(ValueError, match=r"preview percentile = 0 is out of range; allowed \(0, 100\]"):
+        srgb_preview(measured(data), percentile=0)
+
+
+def test_preview_and_contact_sheet_are_pngs_written_atomically(tmp_path):
+    rng = np.random.default_rng(0)
+    stack = measured(rng.uniform(0.0, 1.0, (21, 6, 10)))
+    write_preview(tmp_path / "preview.png", stack)
+    write_contact_sheet(tmp_path / "bands.png", stack, title="test")
+    write_contact_sheet(tmp_path / "common.png", stack, scale="common")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bands.png", "common.png", "preview.png"]
+    preview = matplotlib.image.imread(tmp_path / "preview.png")
+    assert preview.shape == (6, 10, 3)  # 8-bit RGB, one image pixel per stack pixel, row 0 at the top
+    np.testing.assert_array_equal(np.round(preview * 255).astype(np.uint8), srgb_preview(stack))
+    for name in ("bands.png", "common.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="contact sheet scale = 'log'; allowed 'band' or 'common'"):
+        write_contact_sheet(tmp_path / "x.png", stack, scale="log")
+    assert not (tmp_path / "x.png").exists()
