@@ -17,7 +17,9 @@ demo: $(STAMP)
 	@echo "wrote out/demo/paper_tissue.json and out/demo/paper_tissue.png"
 	$(BIN)/tissuefit simulate data_spec/examples/paper_fluorescence.toml --photons 1000000 --out out/demo --plot
 	@echo "wrote out/demo/paper_fluorescence.json and out/demo/paper_fluorescence.png"
-	$(BIN)/tissuefit render data_spec/examples/paper_lesion_render.toml --out out/demo/render
+	@# The example's own settings (300 000 photons, 256 x 256) took 93-124 s on the shared, loaded 2-core
+	@# machine (60-68 s of CPU, about half compilation); 100 000 photons at 128 x 128 took 62-83 s (47-52 s CPU).
+	$(BIN)/tissuefit render data_spec/examples/paper_lesion_render.toml --out out/demo/render --photons 100000 --width 128 --height 128
 	@echo "wrote out/demo/render/paper_lesion_render.{tif,json}, out/demo/render/preview.png and out/demo/render/bands.png"
 
 test: $(STAMP)
