@@ -11,7 +11,7 @@ What differs from single-band MCML:
 - a photon carries one band at a time, drawn at launch with probability `band_power[b]`;
 - at an interaction in band i of a medium with albedo a = mus/mut and conversion probability
   p = sum_j P[i, j], the weight w loses heat w (mua/mut - p); the rest R = w (a + p) converts
-  with probability q = min(1, boost q_a), q_a = p / (a + p), into band j (chosen with probability
+  with probability q = boost q_a / (1 + (boost - 1) q_a) (the odds boosted), q_a = p / (a + p), into band j (chosen with probability
   P[i, j] / p) with weight R q_a / q and an isotropic direction, or else scatters on in band i
   (Henyey–Greenstein) with weight R (1 - q_a) / (1 - q);
 - regions (a sphere or box intersected with one layer) replace their layer's optical properties.
@@ -390,7 +390,7 @@ def emit_isotropic(photon: _Photon, rand: _Uniforms) -> None:
 
 def drop(photon: _Photon, medium: _Medium, boost: float, rand: _Uniforms, tallies: _Tallies) -> None:
     """An interaction: deposit heat w (mua/mut - p), then convert (fluorescence) or scatter the
-    remaining R = w (a + p), with conversion probability q = min(1, boost * q_a), q_a = p/(a + p)."""
+    remaining R = w (a + p), with conversion probability q = boost q_a / (1 + (boost - 1) q_a), q_a = p/(a + p)."""
     i, w = photon.band, photon.w
     mut, p = medium.mut[i], medium.p[i]
     albedo = medium.mus[i] / mut
@@ -400,7 +400,7 @@ def drop(photon: _Photon, medium: _Medium, boost: float, rand: _Uniforms, tallie
         photon.w, photon.alive = 0.0, False
         return
     q_a = p / (albedo + p)
-    q = min(1.0, boost * q_a)
+    q = boost * q_a / (1.0 + (boost - 1.0) * q_a)
     if q > 0.0 and rand.next() < q:
         j = medium.emission_band(i, rand.next())
         photon.w, photon.band, photon.converted = remaining * q_a / q, j, True
@@ -476,7 +476,7 @@ def trace_spectral_reference(
     - `photons` >= 1; `seed`: integer seed of `numpy.random.default_rng`.
     - `polar_deg` [deg] in [0, 90): pencil beam at the origin, in the x-z plane.
     - `roulette_threshold`, `roulette_chance` [-]: MCML's Russian roulette (1e-4, 0.1).
-    - `conversion_boost` [-] > 0: conversion is sampled with probability min(1, boost q_a) and
+    - `conversion_boost` [-] > 0: conversion is sampled with odds boost times the analog odds and
       weights corrected, so results stay unbiased; weight is conserved only for boost = 1.
     - `regions`: dicts {"kind": "sphere", "center": (x, y, z), "radius": r} or {"kind": "box",
       "lower": (x, y, z), "upper": (x, y, z)} [cm, box bounds may be inf] with "layer": int and

@@ -21,9 +21,10 @@ Two ways to carry the spectrum, chosen statically (`SpectralOptions.mode`):
 An interaction (weight w arriving, band i, medium m; the model is in `Fluorophore`) books heat
 w (mua_i/mut_i - p_i); the rest R = w (a_i + p_i) converts with probability q (weight w p_i / q,
 isotropic new direction, emission band j ~ P[m, i, j] / p_i) or scatters on (weight w a_i / (1 - q),
-Henyey–Greenstein). Per band, q = min(1, boost * p_i / (a_i + p_i)): with boost = 1 both branches
-keep R (analog) and energy is conserved photon by photon. Shared paths use one q per medium, the
-largest over the active bands, so that every band's conversion is sampled. Both branch weights are
+Henyey–Greenstein). Per band, q = boost_odds(p_i / (a_i + p_i)) (`boosted`): with boost = 1 both branches
+keep R (analog) and energy is conserved photon by photon. Shared paths use one q per medium and
+state, the largest over the bands the photon can carry (all active bands before a conversion, the
+bands emission reaches after one), so that every carried band's conversion is sampled. Both branch weights are
 explicit functions of the concentrations, as likelihood-ratio gradients need.
 
 Lesion regions are exact: a free path stops at a region boundary, the unfinished optical depth is
@@ -39,7 +40,7 @@ from jaxtyping import Array
 from . import _physics as phys
 from . import _rng
 from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
-from ._spectral_state import _Acc, _Buffer, _Lanes, _Medium, SpectralConfig
+from ._spectral_state import _Acc, _Buffer, _Lanes, _Medium, SpectralConfig, boosted
 from ._spectral_weights import _convert_batch, _convert_batch_per_band, _flush_per_band, _sample_index, band_weights
 
 
@@ -230,11 +231,11 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         spectrum = lanes.spectrum
     if config.fluorescent:
         if shared:
-            q = medium.q[med]
+            q = medium.q[med, lanes.converted.astype(jnp.int32)]
         else:
             p_c = medium.psum[flat]
             denom = albedo + p_c
-            q = jnp.minimum(1.0, config.boost * jnp.where(denom > 0, p_c / jnp.where(denom > 0, denom, 1.0), 0.0))
+            q = boosted(jnp.where(denom > 0, p_c / jnp.where(denom > 0, denom, 1.0), 0.0), config.boost)
         convert = interact & (xi_d <= q)
         keep = w * albedo / jnp.where(q < 1, 1.0 - q, 1.0)
     else:

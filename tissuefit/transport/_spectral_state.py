@@ -103,10 +103,18 @@ class _Medium(NamedTuple):
     power: Array  # [bands] source band powers (sum 1)
     conv: Array | None  # [media * bands, bands]
     psum: Array | None  # [media * bands]: total conversion probability
-    q: Array | None  # shared: [media] conversion sampling probability
+    q: Array | None  # shared: [media, 2] conversion sampling probability (not converted, converted)
     log_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mus_k / mus_c)
     log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
     dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
+
+
+def boosted(q_a, boost: float):
+    """Conversion probability with the odds boosted: q / (1 - q) = boost q_a / (1 - q_a), i.e.
+    q = boost q_a / (1 + (boost - 1) q_a); q = q_a for boost 1, q < 1 wherever q_a < 1."""
+    if boost == 1.0:
+        return q_a
+    return boost * q_a / (1.0 + (boost - 1.0) * q_a)
 
 
 def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
@@ -135,7 +143,13 @@ def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
             p = psum[:, act]
             denom = mus_a / jnp.where(mut_a > 0, mut_a, 1.0) + p
             q_a = jnp.where(denom > 0, p / jnp.where(denom > 0, denom, 1.0), 0.0)
-            q = jnp.minimum(1.0, config.boost * q_a.max(1)).astype(dtype)
+            # [media, 2]: for photons not yet converted, the largest over the active bands; for
+            # converted ones, over the bands emission reaches (their spectrum lives there): a red
+            # fluorescence photon is not made to convert at the violet band's high rate, which
+            # would sample its scattering rarely and with large weights.
+            reach = (full.sum((0, 1)) > 0)[act]
+            q = jnp.stack([boosted(q_a.max(1), config.boost),
+                           boosted(jnp.where(reach[None, :], q_a, 0.0).max(1), config.boost)], axis=1).astype(dtype)
     return _Medium(
         n_ext=jnp.concatenate([geo.n_above[None], geo.n, geo.n_below[None]]).astype(dtype),
         thickness=geo.thickness.astype(dtype), z0=geo.z0.astype(dtype),

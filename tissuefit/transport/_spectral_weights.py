@@ -67,7 +67,7 @@ def _emission_shared(lanes: _Lanes, medium: _Medium, config: SpectralConfig, row
     emitted = scaled @ conv[0]
     for m in range(1, config.num_media):
         emitted = jnp.where((med == m)[:, None], scaled @ conv[m], emitted)
-    q = medium.q[med][:, None]
+    q = medium.q[med, take(lanes.converted).astype(jnp.int32)][:, None]
     into = emitted / q
     out = scaled * medium.psum.reshape(-1, nb)[:, act][med] / q
     new_carrier = _sample_index(jnp.cumsum(into, axis=1), take(xi_e))
