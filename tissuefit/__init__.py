@@ -75,3 +75,10 @@ from .photonmap import (  # noqa: E402
     knn_radius as knn_radius,
     update_map as update_map,
 )
+from . import render as render  # noqa: E402
+from .render import (  # noqa: E402
+    Endoscope as Endoscope,
+    Floodlight as Floodlight,
+    RenderOptions as RenderOptions,
+    RenderResult as RenderResult,
+)

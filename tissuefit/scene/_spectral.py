@@ -102,6 +102,20 @@ class SpectralTissue(eqx.Module):
         layers = jnp.stack([layer_conversion(m, self.bands, quantity=self.quantity).sum(0) for m in self.layers])
         return jnp.concatenate([layers] + [r.conversion(self.bands, self.quantity) for r in self.regions])
 
+    def medium_at(self, points: Float[Array, "n 3"]) -> Array:
+        """Medium index (as `properties()` orders media) of points [n, 3] (x, y, depth z >= 0) [cm]:
+        the region medium containing them (a voxel grid's voxel), else their layer. Points on a face
+        belong to the layer below it; points below the last layer to the last layer."""
+        p = jnp.asarray(points)
+        z0 = self.geometry.z0.astype(p.dtype)
+        layer = jnp.clip(jnp.searchsorted(z0, p[:, 2], side="right") - 1, 0, self.num_layers - 1).astype(jnp.int32)
+        medium = layer
+        pt = p.T
+        for region, offset in zip(self.regions, self.region_offsets()):
+            inside = (layer == region.layer) & region.contains(pt)
+            medium = jnp.where(inside, offset + region.local_medium(pt), medium)
+        return medium
+
     @property
     def fluorescent(self) -> bool:
         """Whether any medium holds a fluorophore (static: decides whether conversion code exists)."""

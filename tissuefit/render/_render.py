@@ -1,0 +1,457 @@
+"""Endoscope rendering: photon maps -> a multi-spectral stack [bands, H, W] (DESIGN.md §8).
+
+Per pixel the camera ray meets the tissue surface at X (angle theta_o from the normal, looking
+back along w_o). The radiance leaving X towards the camera is the sum of three terms:
+
+1. Surface term (the paper's t = 0 sample, eq. 2): the exitance M(X) of the light leaving the
+   tissue, estimated from the surface photon map, spread over directions by the angular model
+
+       L_s = M(X) T(theta_o) / Z,   Z = int T(theta) cos theta dw = 2 pi int_0^1 T(mu) mu dmu,
+
+   the outside radiance of an isotropic radiance just below the surface, T the Fresnel
+   transmittance of the surface (n_above -> n of the top layer). `angular="lambertian"` uses
+   T = 1 (L_s = M / pi). In "march" mode (the default for fluorescent scenes, the paper's), the
+   surface map holds the non-converted light only and fluorescence comes from term 2.
+2. Volume term (eq. 1 and 3): ray marching S steps of length dx along the refracted ray w_t into
+   the tissue. In-scattered radiance at each step's midpoint x_t, towards the surface (-w_t):
+
+       Q(x_t) = (mus/mut) sum_i p(w_i . -w_t) K(x_t - x_i) dPhi_i + sum_e K(x_t - x_e) dPhi_e / (4 pi)
+
+   over the arrival records i (the weight arriving at an interaction estimates the collision
+   density mut L, of which mus/mut scatters by the phase function) and the emission records e
+   (conversion points emit isotropically). The march integrates the exponential exactly over each
+   step with Q constant on it:
+
+       L_in = sum_t Q(x_t) exp(-tau_t) (1 - exp(-mut_t dx)) / mut_t,   L_v = T(theta_o) (n_above/n)^2 L_in
+
+   (tau_t the optical depth to the step's start; n^2 the radiance law across the surface). What
+   lies deeper than S dx is left out: a fraction exp(-mut S dx) for a uniform source, reported in
+   `RenderResult.truncation`. Kernels whose ball crosses the surface are renormalised by the part of
+   their mass inside the tissue (`_boundary_mass`).
+3. Specular term: each light's direct irradiance E at X reflected by the Fresnel reflectance R(theta_i),
+   spread by a Gaussian lobe of width sigma around the mirror direction (the paper's "small specular
+   component described by a simple Gauss function"):
+
+       L_r = sum_lights E R(theta_i) exp(-psi^2 / (2 sigma^2)) / (2 pi sigma^2 cos theta_o)
+
+   normalised so the lobe reflects R E (small sigma); psi the angle between w_o and the mirror
+   direction. The light's spectrum gives the bands.
+
+Units: radiance per unit power of the illumination [1/(cm^2 sr)] per band (band powers from the
+spectrum sum to 1; the head's two lights emit 1 together). Pixels whose ray misses the tissue are 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._checks import check_positive_int, check_range
+from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile
+from ..photonmap._kernels import KERNELS
+from ..scene import FlatSpectrum, SpectralScene, SpectralTissue
+from ..scene._spectra import AbstractSpectrum
+from ..transport import RecordSpec, SpectralOptions, TraceOptions, trace_spectral
+from ..transport import _physics as phys
+from ._endoscope import Endoscope
+from ._illumination import ConeLights, Floodlight
+
+
+class RenderOptions(eqx.Module):
+    """How a render estimates radiance (static: changing it recompiles).
+
+    - `steps`: ray-marching steps S (the paper: 5); `step_length` [cm]: dx (default 1 / the smallest
+      mut of the top layer over the lit bands, one mean free path).
+    - `kernel`: density kernel (`tissuefit.photonmap.KERNELS`; default Epanechnikov).
+    - `surface_radius`, `volume_radius` [cm]: fixed bandwidths (default: chosen from the records,
+      the median distance to the `neighbours`-th nearest record over the pixels / march points).
+    - `k`: adaptive k-nearest-record bandwidth instead (the paper's estimate is `kernel="box", k=...`),
+      capped at the radius.
+    - `fluorescence`: "march" (fluorescence from the volume map, the paper's) or "surface" (from the
+      surface map with the angular model; no volume map). Scenes without fluorophores build no
+      volume map either way.
+    - `angular`: "fresnel" (default) or "lambertian" (see the module docstring).
+    - `specular_deg`: the specular lobe's sigma [deg] (0: no specular term).
+    - `halton`: launch from scrambled Halton points (the paper's) instead of pseudo-random ones.
+    - `margin` [cm]: launches landing farther than this outside the camera's view are not traced.
+    - `volume_capacity`: volume records to keep per launched photon before retrying larger.
+    """
+
+    steps: int = eqx.field(static=True, default=5)
+    step_length: float | None = eqx.field(static=True, default=None)
+    kernel: str = eqx.field(static=True, default="epanechnikov")
+    surface_radius: float | None = eqx.field(static=True, default=None)
+    volume_radius: float | None = eqx.field(static=True, default=None)
+    k: int | None = eqx.field(static=True, default=None)
+    neighbours: int = eqx.field(static=True, default=48)
+    fluorescence: Literal["march", "surface"] = eqx.field(static=True, default="march")
+    angular: Literal["fresnel", "lambertian"] = eqx.field(static=True, default="fresnel")
+    specular_deg: float = eqx.field(static=True, default=4.0)
+    halton: bool = eqx.field(static=True, default=True)
+    margin: float = eqx.field(static=True, default=0.3)
+    volume_capacity: float = eqx.field(static=True, default=6.0)
+
+    def __check_init__(self):
+        check_positive_int("render.steps", self.steps, high=1000)
+        for name in ("step_length", "surface_radius", "volume_radius"):
+            if getattr(self, name) is not None:
+                check_range(f"render.{name}", getattr(self, name), unit="cm", low=0.0, low_open=True)
+        if self.kernel not in KERNELS:
+            raise ValueError(f"render.kernel = {self.kernel!r}; allowed one of {', '.join(map(repr, KERNELS))}")
+        if self.k is not None:
+            check_positive_int("render.k", self.k, high=2**20)
+        check_positive_int("render.neighbours", self.neighbours, high=2**20)
+        if self.fluorescence not in ("march", "surface"):
+            raise ValueError(f"render.fluorescence = {self.fluorescence!r}; allowed 'march' or 'surface'")
+        if self.angular not in ("fresnel", "lambertian"):
+            raise ValueError(f"render.angular = {self.angular!r}; allowed 'fresnel' or 'lambertian'")
+        check_range("render.specular_deg", self.specular_deg, unit="deg", low=0.0, high=45.0)
+        check_range("render.margin", self.margin, unit="cm", low=0.0)
+        check_range("render.volume_capacity", self.volume_capacity, unit="records per photon", low=0.0, low_open=True)
+        if not isinstance(self.halton, bool):
+            raise TypeError(f"render.halton = {self.halton!r} must be True or False")
+
+
+class RenderResult(eqx.Module):
+    """A rendered stack and how it was made (numpy arrays).
+
+    - `stack` [bands, H, W]: radiance per unit illumination power [1/(cm^2 sr)] = `surface` +
+      `fluorescence` + `specular` (each [bands, H, W], the terms of the module docstring; in
+      "surface" fluorescence mode `fluorescence` is 0 and fluorescence is inside `surface`).
+    - `wavelengths` [bands] nm; `covered` [H, W] bool: the surface kernel at the pixel found a
+      record (False: no photon reached it, or the ray missed the tissue); `hit` [H, W]: the ray meets the tissue.
+    - `truncation` [bands]: exp(-mut S dx) of the top layer, the part of a uniform source deeper
+      than the march that is left out.
+    - `surface_radius`, `volume_radius`, `step_length` [cm]; `surface_photons`, `volume_photons`,
+      `emission_photons`: records in the maps (volume ones 0 when no volume map was built);
+      `photons`: launches traced, `launched_fraction`: the illumination's power they carry.
+    - `timings` (dict of seconds: trace, maps, estimate).
+    - `trace`: the `SpectralResult` (records dropped).
+    - `records`: with `render(..., keep_records=True)`, the (surface, arrival, emission)
+      `PhotonRecords` the maps hold, powers per unit illumination power (None where not built).
+    """
+
+    stack: np.ndarray
+    surface: np.ndarray
+    fluorescence: np.ndarray
+    specular: np.ndarray
+    wavelengths: np.ndarray
+    covered: np.ndarray
+    hit: np.ndarray
+    truncation: np.ndarray
+    surface_radius: float
+    volume_radius: float | None
+    step_length: float
+    surface_photons: int
+    volume_photons: int
+    emission_photons: int
+    photons: int
+    launched_fraction: float
+    timings: dict
+    trace: object
+    records: tuple | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# pieces (pure functions of arrays: what a fit differentiates)
+
+
+def fresnel_transmittance(n_out, n_in, cos_out):
+    """T = 1 - R of the surface for a ray at cos_out outside (reciprocal: either direction)."""
+    r, _ = phys.fresnel(jnp.asarray(n_out, cos_out.dtype), jnp.asarray(n_in, cos_out.dtype), cos_out)
+    return 1.0 - r
+
+
+def angular_norm(n_out: float, n_in: float, angular: str) -> float:
+    """Z = 2 pi int_0^1 T(mu) mu dmu (Gauss–Legendre, 200 nodes); pi when `angular="lambertian"`."""
+    if angular == "lambertian":
+        return math.pi
+    x, w = np.polynomial.legendre.leggauss(200)
+    mu = 0.5 * (x + 1.0)
+    t = np.asarray(fresnel_transmittance(n_out, n_in, jnp.asarray(mu)))
+    return float(2 * math.pi * 0.5 * np.sum(w * t * mu))
+
+
+def _boundary_table(kernel: str, nodes: int = 513) -> np.ndarray:
+    """F(h), h = depth / r in [0, 1]: the mass of the 3-D kernel (r = 1) at depth h inside the
+    half-space below the surface, from its marginal along z, k_z(t) = 2 pi int K(sqrt(t^2 + rho^2)) rho drho
+    (Gauss–Legendre in rho, trapezoid in t). F(0) = 1/2, F(1) = 1."""
+    t = np.linspace(0.0, 1.0, nodes)
+    x, w = np.polynomial.legendre.leggauss(64)
+    kz = np.empty_like(t)
+    for i, ti in enumerate(t):
+        top = math.sqrt(max(1.0 - ti * ti, 0.0))
+        rho = 0.5 * top * (x + 1.0)
+        u = np.sqrt(ti * ti + rho * rho)
+        prof = np.asarray(kernel_profile(jnp.asarray(np.minimum(u, 1.0)), kernel=kernel, dim=3))
+        kz[i] = 2 * math.pi * 0.5 * top * np.sum(w * prof * rho)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (kz[1:] + kz[:-1]) * np.diff(t))])
+    total = 2 * cum[-1]  # the kernel's whole mass (1 up to quadrature), used to normalise
+    return (0.5 * total + cum) / total
+
+
+_TABLES: dict[str, np.ndarray] = {}
+
+
+def boundary_mass(depth: Array, radius: Array, kernel: str) -> Array:
+    """Fraction of a 3-D kernel of `radius` centred at `depth` below the surface that lies inside
+    the tissue (1 for depth >= radius). Dividing an estimate by it removes the surface's bias."""
+    if kernel not in _TABLES:
+        _TABLES[kernel] = _boundary_table(kernel)
+    table = jnp.asarray(_TABLES[kernel], depth.dtype)
+    h = jnp.clip(depth / radius, 0.0, 1.0)
+    return jnp.interp(h, jnp.linspace(0.0, 1.0, table.shape[0], dtype=depth.dtype), table)
+
+
+def surface_hits(origin, direction):
+    """Where rays meet z = 0: points [n, 3], hit mask [n] (the ray points down: uz > 0)."""
+    hit = direction[:, 2] > 1e-9
+    t = jnp.where(hit, -origin[:, 2] / jnp.where(hit, direction[:, 2], 1.0), 0.0)
+    x = origin + t[:, None] * direction
+    return x.at[:, 2].set(0.0), hit
+
+
+def specular_term(points, view, cos_o, irradiance, incidence, n_above, n_top, sigma_rad, band_power):
+    """L_r [n, bands] (module docstring, term 3). `view` [n, 3]: unit vectors towards the camera."""
+    total = jnp.zeros(points.shape[0], points.dtype)
+    for e, d in zip(irradiance, incidence):
+        mirror = d * jnp.asarray([1.0, 1.0, -1.0], d.dtype)
+        cos_psi = jnp.clip(jnp.sum(mirror * view, axis=1), -1.0, 1.0)
+        psi = jnp.arccos(cos_psi)
+        r, _ = phys.fresnel(jnp.asarray(n_above, d.dtype), jnp.asarray(n_top, d.dtype), d[:, 2])
+        lobe = jnp.exp(-0.5 * (psi / sigma_rad) ** 2) / (2 * math.pi * sigma_rad**2 * jnp.maximum(cos_o, 1e-6))
+        total = total + e * r * lobe
+    return total[:, None] * band_power[None, :]
+
+
+# ---------------------------------------------------------------------------------------------
+# the render
+
+
+def _footprint(endoscope: Endoscope, margin: float):
+    origin, d = endoscope.pixel_rays()
+    x, hit = surface_hits(origin, d)
+    if not bool(jnp.any(hit)):
+        raise ValueError(f"render: with beta_deg = {endoscope.beta_deg:g} no pixel ray meets the tissue surface")
+    x = np.asarray(x)[np.asarray(hit)]
+    # pixels near the horizon see very far: the tissue the camera resolves is bounded at 20 working distances
+    reach = 20 * endoscope.distance
+    t = np.asarray(endoscope.target)
+    x0, y0 = np.maximum(x[:, :2].min(0), t - reach)
+    x1, y1 = np.minimum(x[:, :2].max(0), t + reach)
+    return (x0 - margin, x1 + margin, y0 - margin, y1 + margin)
+
+
+def _bucket(n: float) -> int:
+    """n rounded up to 2^k or 1.5 * 2^k (at least 4096): a record capacity that few counts share."""
+    n = max(4096, int(math.ceil(n)))
+    p = 1 << (n - 1).bit_length()
+    return p * 3 // 4 if p * 3 // 4 >= n else p
+
+
+def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, seed: int) -> float:
+    """Median distance from (up to 2048 of) the queries to their `neighbours`-th nearest record [cm]."""
+    from scipy.spatial import cKDTree
+
+    if records_xyz.shape[0] == 0:
+        raise ValueError("render: the photon map is empty (no records); trace more photons")
+    rng = np.random.default_rng(seed)
+    q = queries[rng.choice(queries.shape[0], min(2048, queries.shape[0]), replace=False)]
+    k = min(neighbours, records_xyz.shape[0])
+    dist, _ = cKDTree(records_xyz).query(q, k=[k])
+    return float(np.median(dist[:, 0]))
+
+
+def render(
+    tissue: SpectralTissue,
+    endoscope: Endoscope | None = None,
+    *,
+    spectrum: AbstractSpectrum | None = None,
+    photons: int = 300_000,
+    key=None,
+    illumination=None,
+    options: RenderOptions = RenderOptions(),
+    trace_options: TraceOptions = TraceOptions(),
+    spectral: SpectralOptions | None = None,
+    chunks: int = 1,
+    progress=None,
+    keep_records: bool = False,
+) -> RenderResult:
+    """Trace the illumination into `tissue`, build the photon maps and render the camera's stack.
+
+    - `tissue`: a `SpectralTissue` (its band grid is the stack's); `endoscope`: camera and lights
+      geometry (default `Endoscope()`); `spectrum`: the lights' spectrum (default flat white).
+    - `photons`: launches sampled from the lights (those that cannot reach the camera's view are
+      not traced; see `RenderResult.launched_fraction`).
+    - `illumination`: default the endoscope's cone lights; `Floodlight(radius)` for a wide beam.
+    - `spectral`: `SpectralOptions` (default: auto mode, analog conversions; a
+      `conversion_boost` > 1 gives more fluorescence records per photon, unbiased).
+    - `options`: `RenderOptions`; `trace_options`, `spectral`, `chunks`, `progress` (a callable
+      `progress(photons_done)`): passed to `trace_spectral`.
+    - `keep_records`: keep the records the maps were built from in `RenderResult.records`.
+    Returns a `RenderResult`.
+    """
+    if not isinstance(tissue, SpectralTissue):
+        raise TypeError(f"tissue is a {type(tissue).__name__}, not a SpectralTissue")
+    endoscope = Endoscope() if endoscope is None else endoscope
+    if not isinstance(endoscope, Endoscope):
+        raise TypeError(f"endoscope is a {type(endoscope).__name__}, not an Endoscope")
+    spectrum = FlatSpectrum() if spectrum is None else spectrum
+    illumination = ConeLights(endoscope) if illumination is None else illumination
+    if not isinstance(illumination, (ConeLights, Floodlight)):
+        raise TypeError(f"illumination is a {type(illumination).__name__}; allowed ConeLights or Floodlight")
+    photons = check_positive_int("photons", photons, high=2**40)
+    key = jax.random.PRNGKey(0) if key is None else key
+    timings = {}
+    t0 = time.perf_counter()
+
+    # 1. launches and the trace, with the records the maps need
+    fluorescent = tissue.fluorescent
+    march = fluorescent and options.fluorescence == "march"
+    spectral = SpectralOptions() if spectral is None else spectral
+    source, kept, fraction = illumination.launches(photons, jax.random.fold_in(key, 1), options.halton,
+                                                   _footprint(endoscope, options.margin))
+    scene = SpectralScene(tissue, source=source, spectrum=spectrum)
+    capacity = _bucket(options.volume_capacity * kept) if march else 0
+    for _ in range(4):
+        # capacities rounded up to buckets, so that renders of similar photon counts share a compile
+        records = RecordSpec(surface=_bucket(kept), volume=capacity, emission=march)
+        traced = trace_spectral(scene, key=key, photons=kept, options=trace_options, spectral=spectral,
+                                records=records, chunks=chunks, progress=progress)
+        vol = traced.volume_records
+        if vol is None or vol.overflow == 0:
+            break
+        capacity = _bucket((vol.count + vol.overflow) * 1.25)  # retry with room
+    else:  # pragma: no cover - four growths always suffice
+        raise RuntimeError("render: the volume record buffer kept overflowing")
+    timings["trace"] = time.perf_counter() - t0
+
+    # 2. photon maps (records per unit illumination power)
+    t1 = time.perf_counter()
+    surf = traced.surface_records
+    if march:
+        surf = surf.select(~surf.converted)
+    surf = eqx.tree_at(lambda r: r.power, surf, surf.power * fraction)
+    origin, direction = endoscope.pixel_rays()
+    hits_xyz, hit = surface_hits(origin, direction)
+    hits_np = np.asarray(hits_xyz)[np.asarray(hit)]
+    r_s = options.surface_radius or _auto_radius(surf.position[:, :2], hits_np[:, :2], options.neighbours, 1)
+    # one extra column of ones counts the records under the kernel (coverage)
+    counting = eqx.tree_at(lambda r: r.power, surf, np.concatenate([surf.power, np.ones((surf.count, 1))], axis=1))
+    smap = build_surface_map(counting, cell=r_s)
+
+    geo = tissue.geometry
+    n_above, n_top = float(geo.n_above), float(np.asarray(geo.n)[0])
+    mua, mus, g = (jnp.asarray(a, jnp.float64) for a in tissue.properties())
+    active = np.asarray(traced.active)
+    mut_top = np.asarray(mua + mus)[0, active]
+    positive = mut_top[mut_top > 0]
+    dx = options.step_length or (1.0 / float(positive.min()) if positive.size else 0.01)
+
+    # march points: midpoints of S steps along the refracted rays
+    cos_o = jnp.where(hit, direction[:, 2], 1.0)
+    ratio = n_above / n_top
+    _, cos_t = phys.fresnel(jnp.asarray(n_above), jnp.asarray(n_top), cos_o)
+    inward = jnp.stack([direction[:, 0] * ratio, direction[:, 1] * ratio, cos_t], axis=1)
+    mids = (jnp.arange(options.steps, dtype=jnp.float64) + 0.5) * dx
+    march_pts = hits_xyz[:, None, :] + mids[None, :, None] * inward[:, None, :]  # [P, S, 3]
+
+    vmap_arr = vmap_em = arrivals = emissions = None
+    r_v = None
+    if march:
+        vol = traced.volume_records
+        arrivals = vol.select(~vol.emission)
+        emissions = vol.select(vol.emission)
+        arrivals = eqx.tree_at(lambda r: r.power, arrivals, arrivals.power * fraction)
+        emissions = eqx.tree_at(lambda r: r.power, emissions, emissions.power * fraction)
+        pts_np = np.asarray(march_pts)[np.asarray(hit)].reshape(-1, 3)
+        r_v = options.volume_radius or _auto_radius(arrivals.position, pts_np, options.neighbours, 2)
+        if arrivals.count:
+            vmap_arr = build_volume_map(arrivals, cell=r_v)
+        if emissions.count:
+            vmap_em = build_volume_map(emissions, cell=r_v)
+    timings["maps"] = time.perf_counter() - t1
+
+    # 3. estimates per pixel
+    t2 = time.perf_counter()
+    q_xy = jnp.where(hit[:, None], hits_xyz[:, :2], jnp.asarray(endoscope.target)[None, :])
+    m = estimate_surface(smap, q_xy, kernel=options.kernel, radius=r_s, k=options.k).astype(jnp.float64)
+    exitance, count = m[:, :-1], m[:, -1]
+    z_norm = angular_norm(n_above, n_top, options.angular)
+    t_o = fresnel_transmittance(n_above, n_top, cos_o) if options.angular == "fresnel" else jnp.ones_like(cos_o)
+    l_surface = exitance * (t_o / z_norm)[:, None]
+
+    nb = tissue.bands.num_bands
+    l_fluor = jnp.zeros_like(l_surface)
+    if march:
+        pts = march_pts.reshape(-1, 3)
+        ok = jnp.repeat(hit, options.steps)
+        pts = jnp.where(ok[:, None], pts, jnp.asarray([*endoscope.target, dx])[None, :])
+        up = -jnp.repeat(inward, options.steps, axis=0)
+        med = tissue.medium_at(pts)
+        mua_q, mus_q, g_q = mua[med], mus[med], g[med]  # [Q, bands]
+        mut_q = mua_q + mus_q
+        albedo = jnp.where(mut_q > 0, mus_q / jnp.where(mut_q > 0, mut_q, 1.0), 0.0)
+        if options.k is None:
+            radius_q = jnp.full(pts.shape[0], r_v)
+        else:
+            from ..photonmap import knn_radius
+
+            radius_q = (knn_radius(vmap_arr, pts, k=options.k, radius=r_v).astype(jnp.float64) if vmap_arr is not None
+                        else jnp.full(pts.shape[0], r_v))
+        mass = boundary_mass(pts[:, 2], radius_q, options.kernel)
+        q = jnp.zeros((pts.shape[0], nb))
+        if vmap_arr is not None:
+            gs = np.unique(np.asarray(g_q)[:, active])
+            for gv in gs:  # one estimate per distinct anisotropy (usually one)
+                est = estimate_volume(vmap_arr, pts, up, g=float(gv), kernel=options.kernel, radius=r_v,
+                                      k=options.k).astype(jnp.float64)
+                q = q + jnp.where(g_q == gv, albedo * est, 0.0)
+        if vmap_em is not None:
+            q = q + estimate_volume(vmap_em, pts, phase="isotropic", kernel=options.kernel, radius=r_v,
+                                    k=options.k).astype(jnp.float64)
+        q = q / mass[:, None]
+        # exact exponential over each step, Q constant on it
+        mut_s = mut_q.reshape(-1, options.steps, nb)
+        tau_end = jnp.cumsum(mut_s * dx, axis=1)
+        tau_start = tau_end - mut_s * dx
+        seg = jnp.where(mut_s > 0, jnp.exp(-tau_start) * -jnp.expm1(-mut_s * dx) / jnp.where(mut_s > 0, mut_s, 1.0), dx)
+        l_in = jnp.sum(seg * q.reshape(-1, options.steps, nb), axis=1)
+        l_fluor = l_in * (fresnel_transmittance(n_above, n_top, cos_o) * ratio**2)[:, None]
+
+    l_spec = jnp.zeros_like(l_surface)
+    if options.specular_deg > 0:
+        e, inc = illumination.irradiance(hits_xyz)
+        band_power = jnp.asarray(spectrum.band_power(tissue.bands), jnp.float64)
+        l_spec = specular_term(hits_xyz, -direction, cos_o, e, inc, n_above, n_top,
+                               math.radians(options.specular_deg), band_power)
+    timings["estimate"] = time.perf_counter() - t2
+
+    h, w = endoscope.height, endoscope.width
+    mask = hit[:, None]
+
+    def image(a):
+        return np.asarray(jnp.where(mask, a, 0.0)).T.reshape(nb, h, w)
+
+    surface, fluor, spec = image(l_surface), image(l_fluor), image(l_spec)
+    trunc = np.exp(-np.asarray(mua + mus)[0] * options.steps * dx)
+    return RenderResult(
+        stack=surface + fluor + spec, surface=surface, fluorescence=fluor, specular=spec,
+        wavelengths=tissue.bands.wavelengths, covered=(np.asarray(count) > 0).reshape(h, w) & np.asarray(hit).reshape(h, w),
+        hit=np.asarray(hit).reshape(h, w), truncation=trunc, surface_radius=float(r_s),
+        volume_radius=None if r_v is None else float(r_v), step_length=float(dx),
+        surface_photons=int(surf.count),
+        volume_photons=0 if vmap_arr is None else int(vmap_arr.count),
+        emission_photons=0 if vmap_em is None else int(vmap_em.count),
+        photons=kept, launched_fraction=fraction, timings=timings,
+        trace=dataclasses.replace(traced, surface_records=None, volume_records=None),
+        records=(surf, arrivals, emissions) if keep_records else None,
+    )
