@@ -372,14 +372,14 @@ class FakeRender:
     def __init__(self, error=None):
         self.calls, self.error = [], error
 
-    def __call__(self, tissue, endoscope, *, spectrum, photons, key, options, trace_options, chunks, progress):
+    def __call__(self, tissue, endoscope, *, spectrum, photons, key, options, trace_options, spectral, chunks, progress):
         from types import SimpleNamespace
 
         from tests.io.conftest import fake_spectral_result
         from tissuefit import RecordSpec, SpectralScene
 
         self.calls.append(dict(tissue=tissue, endoscope=endoscope, spectrum=spectrum, photons=photons, key=key,
-                               options=options, trace_options=trace_options, chunks=chunks))
+                               options=options, trace_options=trace_options, spectral=spectral, chunks=chunks))
         if self.error:
             raise ValueError(self.error)
         progress(photons)
@@ -391,7 +391,7 @@ class FakeRender:
             stack=np.full((nb, h, w), 1e-3) + fluor, surface=np.full((nb, h, w), 1e-3), fluorescence=fluor,
             specular=np.zeros((nb, h, w)), wavelengths=tissue.bands.wavelengths, covered=np.ones((h, w), bool),
             hit=np.ones((h, w), bool), truncation=np.full(nb, 0.007), surface_radius=0.01, volume_radius=0.02,
-            step_length=0.0045, surface_photons=100, volume_photons=200, emission_photons=30,
+            emission_radius=0.04, step_length=0.0045, surface_photons=100, volume_photons=200, emission_photons=30,
             photons=photons - 1, launched_fraction=(photons - 1) / photons,
             timings={"trace": 1.0, "maps": 0.5, "estimate": 0.25}, trace=trace)
 

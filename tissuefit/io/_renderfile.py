@@ -41,6 +41,7 @@ def render_stack(run: SpectralRun, spec: RenderSpec, result, *, seed: int, secon
         # what the automatic choices came to
         "surface_radius_cm": float(result.surface_radius),
         "volume_radius_cm": None if result.volume_radius is None else float(result.volume_radius),
+        "emission_radius_cm": None if result.emission_radius is None else float(result.emission_radius),
         "step_length_cm": float(result.step_length),
         "precision": run.options.precision,
         "lanes": int(run.options.lanes),

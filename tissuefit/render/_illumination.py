@@ -19,6 +19,13 @@ from ..scene import FlatBeam, LaunchList
 from ._endoscope import Endoscope
 
 
+def bucket(n: float) -> int:
+    """n rounded up to 2^k or 1.5 * 2^k (at least 4096): a buffer size that few counts share."""
+    n = max(4096, int(math.ceil(n)))
+    p = 1 << (n - 1).bit_length()
+    return p * 3 // 4 if p * 3 // 4 >= n else p
+
+
 def uniforms(photons: int, dim: int, key, halton: bool) -> np.ndarray:
     """[photons, dim] uniforms in [0, 1): scrambled Halton points (scipy.stats.qmc, seeded from
     `key`) or pseudo-random numbers from `key`."""
@@ -70,7 +77,11 @@ class ConeLights(eqx.Module):
         keep = hits & (land[:, 0] >= x0) & (land[:, 0] <= x1) & (land[:, 1] >= y0) & (land[:, 1] <= y1)
         if not keep.any():
             raise ValueError("render: no light reaches the part of the tissue the camera sees (check the endoscope geometry)")
-        return LaunchList(pos[keep], d[keep]), int(keep.sum()), float(keep.sum()) / photons
+        kept = int(keep.sum())
+        # rows padded to a bucket (repeating the first; photons >= kept never launch) so that renders
+        # of similar photon counts share the tracer's compilation
+        rows = np.concatenate([np.flatnonzero(keep), np.full(bucket(kept) - kept, np.flatnonzero(keep)[0])])
+        return LaunchList(pos[rows], d[rows]), kept, kept / photons
 
     def irradiance(self, points):
         return self.endoscope.irradiance(points)

@@ -45,9 +45,10 @@ def _half_space_mass(h, kernel):
 
 
 def shade_reference(tissue, endoscope: Endoscope, records, *, surface_radius, volume_radius, step_length,
-                    steps, kernel, angular="fresnel"):
+                    steps, kernel, angular="fresnel", emission_radius=None):
     """(surface, fluorescence) [bands, H, W] from `records` = (surface, arrivals, emissions)."""
     surf, arr, em = records
+    emission_radius = volume_radius if emission_radius is None else emission_radius
     mua, mus, g = (np.asarray(a, float) for a in tissue.properties())
     n_above, n_top = float(tissue.geometry.n_above), float(np.asarray(tissue.geometry.n)[0])
     nb = mua.shape[1]
@@ -81,6 +82,8 @@ def shade_reference(tissue, endoscope: Endoscope, records, *, surface_radius, vo
             m = int(np.asarray(tissue.medium_at(q_pt[None, :]))[0])
             mut = mua[m] + mus[m]
             q = np.zeros(nb)
+            mass_v = _half_space_mass(min(q_pt[2] / volume_radius, 1.0), kernel)
+            mass_e = _half_space_mass(min(q_pt[2] / emission_radius, 1.0), kernel)
             if arr.count:
                 d2 = np.sum((arr.position - q_pt) ** 2, axis=1)
                 k = _kernel(d2, volume_radius, kernel, 3)
@@ -88,11 +91,10 @@ def shade_reference(tissue, endoscope: Endoscope, records, *, surface_radius, vo
                 for b in range(nb):
                     gb = g[m, b]
                     phase = (1 - gb * gb) / (4 * math.pi * (1 + gb * gb - 2 * gb * cos) ** 1.5)
-                    q[b] += mus[m, b] / mut[b] * np.sum(k * phase * arr.power[:, b])
+                    q[b] += mus[m, b] / mut[b] * np.sum(k * phase * arr.power[:, b]) / mass_v
             if em is not None and em.count:
                 d2 = np.sum((em.position - q_pt) ** 2, axis=1)
-                q += (_kernel(d2, volume_radius, kernel, 3)[:, None] * em.power).sum(0) / (4 * math.pi)
-            q /= _half_space_mass(min(q_pt[2] / volume_radius, 1.0), kernel)
+                q += (_kernel(d2, emission_radius, kernel, 3)[:, None] * em.power).sum(0) / (4 * math.pi) / mass_e
             l_in += q * np.exp(-tau) * (1 - np.exp(-mut * step_length)) / mut
             tau += mut * step_length
         out_f[p] = l_in * (1 - r_o) * ratio**2

@@ -62,7 +62,7 @@ from ..scene._spectra import AbstractSpectrum
 from ..transport import RecordSpec, SpectralOptions, TraceOptions, trace_spectral
 from ..transport import _physics as phys
 from ._endoscope import Endoscope
-from ._illumination import ConeLights, Floodlight
+from ._illumination import ConeLights, Floodlight, bucket
 
 
 class RenderOptions(eqx.Module):
@@ -72,7 +72,8 @@ class RenderOptions(eqx.Module):
       mut of the top layer over the lit bands, one mean free path).
     - `kernel`: density kernel (`tissuefit.photonmap.KERNELS`; default Epanechnikov).
     - `surface_radius`, `volume_radius` [cm]: fixed bandwidths (default: chosen from the records,
-      the median distance to the `neighbours`-th nearest record over the pixels / march points).
+      the median distance to the `neighbours`-th nearest record over the pixels / march points,
+      separately for the arrival and the emission records; `volume_radius` sets both).
     - `k`: adaptive k-nearest-record bandwidth instead (the paper's estimate is `kernel="box", k=...`),
       capped at the radius.
     - `fluorescence`: "march" (fluorescence from the volume map, the paper's) or "surface" (from the
@@ -130,7 +131,8 @@ class RenderResult(eqx.Module):
       record (False: no photon reached it, or the ray missed the tissue); `hit` [H, W]: the ray meets the tissue.
     - `truncation` [bands]: exp(-mut S dx) of the top layer, the part of a uniform source deeper
       than the march that is left out.
-    - `surface_radius`, `volume_radius`, `step_length` [cm]; `surface_photons`, `volume_photons`,
+    - `surface_radius`, `volume_radius` (arrival map), `emission_radius` (emission map),
+      `step_length` [cm]; `surface_photons`, `volume_photons`,
       `emission_photons`: records in the maps (volume ones 0 when no volume map was built);
       `photons`: launches traced, `launched_fraction`: the illumination's power they carry.
     - `timings` (dict of seconds: trace, maps, estimate).
@@ -149,6 +151,7 @@ class RenderResult(eqx.Module):
     truncation: np.ndarray
     surface_radius: float
     volume_radius: float | None
+    emission_radius: float | None
     step_length: float
     surface_photons: int
     volume_photons: int
@@ -250,13 +253,6 @@ def _footprint(endoscope: Endoscope, margin: float):
     return (x0 - margin, x1 + margin, y0 - margin, y1 + margin)
 
 
-def _bucket(n: float) -> int:
-    """n rounded up to 2^k or 1.5 * 2^k (at least 4096): a record capacity that few counts share."""
-    n = max(4096, int(math.ceil(n)))
-    p = 1 << (n - 1).bit_length()
-    return p * 3 // 4 if p * 3 // 4 >= n else p
-
-
 def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, seed: int) -> float:
     """Median distance from (up to 2048 of) the queries to their `neighbours`-th nearest record [cm]."""
     from scipy.spatial import cKDTree
@@ -320,16 +316,16 @@ def render(
     source, kept, fraction = illumination.launches(photons, jax.random.fold_in(key, 1), options.halton,
                                                    _footprint(endoscope, options.margin))
     scene = SpectralScene(tissue, source=source, spectrum=spectrum)
-    capacity = _bucket(options.volume_capacity * kept) if march else 0
+    capacity = bucket(options.volume_capacity * kept) if march else 0
     for _ in range(4):
         # capacities rounded up to buckets, so that renders of similar photon counts share a compile
-        records = RecordSpec(surface=_bucket(kept), volume=capacity, emission=march)
+        records = RecordSpec(surface=bucket(kept), volume=capacity, emission=march)
         traced = trace_spectral(scene, key=key, photons=kept, options=trace_options, spectral=spectral,
                                 records=records, chunks=chunks, progress=progress)
         vol = traced.volume_records
         if vol is None or vol.overflow == 0:
             break
-        capacity = _bucket((vol.count + vol.overflow) * 1.25)  # retry with room
+        capacity = bucket((vol.count + vol.overflow) * 1.25)  # retry with room
     else:  # pragma: no cover - four growths always suffice
         raise RuntimeError("render: the volume record buffer kept overflowing")
     timings["trace"] = time.perf_counter() - t0
@@ -365,7 +361,7 @@ def render(
     march_pts = hits_xyz[:, None, :] + mids[None, :, None] * inward[:, None, :]  # [P, S, 3]
 
     vmap_arr = vmap_em = arrivals = emissions = None
-    r_v = None
+    r_v = r_e = None
     if march:
         vol = traced.volume_records
         arrivals = vol.select(~vol.emission)
@@ -374,10 +370,13 @@ def render(
         emissions = eqx.tree_at(lambda r: r.power, emissions, emissions.power * fraction)
         pts_np = np.asarray(march_pts)[np.asarray(hit)].reshape(-1, 3)
         r_v = options.volume_radius or _auto_radius(arrivals.position, pts_np, options.neighbours, 2)
+        # emission records are ~10-20x sparser than arrivals: their own bandwidth, from their density
+        r_e = options.volume_radius or (_auto_radius(emissions.position, pts_np, options.neighbours, 3)
+                                        if emissions.count else r_v)
         if arrivals.count:
             vmap_arr = build_volume_map(arrivals, cell=r_v)
         if emissions.count:
-            vmap_em = build_volume_map(emissions, cell=r_v)
+            vmap_em = build_volume_map(emissions, cell=r_e)
     timings["maps"] = time.perf_counter() - t1
 
     # 3. estimates per pixel
@@ -400,25 +399,27 @@ def render(
         mua_q, mus_q, g_q = mua[med], mus[med], g[med]  # [Q, bands]
         mut_q = mua_q + mus_q
         albedo = jnp.where(mut_q > 0, mus_q / jnp.where(mut_q > 0, mut_q, 1.0), 0.0)
-        if options.k is None:
-            radius_q = jnp.full(pts.shape[0], r_v)
-        else:
+        def mass(photon_map, radius):
+            """The part of each query's kernel inside the tissue (its k-NN radius with `k`)."""
+            if options.k is None:
+                return boundary_mass(pts[:, 2], jnp.full(pts.shape[0], radius), options.kernel)[:, None]
             from ..photonmap import knn_radius
 
-            radius_q = (knn_radius(vmap_arr, pts, k=options.k, radius=r_v).astype(jnp.float64) if vmap_arr is not None
-                        else jnp.full(pts.shape[0], r_v))
-        mass = boundary_mass(pts[:, 2], radius_q, options.kernel)
+            r_q = knn_radius(photon_map, pts, k=options.k, radius=radius).astype(jnp.float64)
+            return boundary_mass(pts[:, 2], r_q, options.kernel)[:, None]
+
         q = jnp.zeros((pts.shape[0], nb))
         if vmap_arr is not None:
-            gs = np.unique(np.asarray(g_q)[:, active])
-            for gv in gs:  # one estimate per distinct anisotropy (usually one)
+            scattered = jnp.zeros_like(q)
+            for gv in np.unique(np.asarray(g_q)[:, active]):  # one estimate per distinct anisotropy (usually one)
                 est = estimate_volume(vmap_arr, pts, up, g=float(gv), kernel=options.kernel, radius=r_v,
                                       k=options.k).astype(jnp.float64)
-                q = q + jnp.where(g_q == gv, albedo * est, 0.0)
+                scattered = scattered + jnp.where(g_q == gv, albedo * est, 0.0)
+            q = q + scattered / mass(vmap_arr, r_v)
         if vmap_em is not None:
-            q = q + estimate_volume(vmap_em, pts, phase="isotropic", kernel=options.kernel, radius=r_v,
-                                    k=options.k).astype(jnp.float64)
-        q = q / mass[:, None]
+            emitted = estimate_volume(vmap_em, pts, phase="isotropic", kernel=options.kernel, radius=r_e,
+                                      k=options.k).astype(jnp.float64)
+            q = q + emitted / mass(vmap_em, r_e)
         # exact exponential over each step, Q constant on it
         mut_s = mut_q.reshape(-1, options.steps, nb)
         tau_end = jnp.cumsum(mut_s * dx, axis=1)
@@ -447,7 +448,8 @@ def render(
         stack=surface + fluor + spec, surface=surface, fluorescence=fluor, specular=spec,
         wavelengths=tissue.bands.wavelengths, covered=(np.asarray(count) > 0).reshape(h, w) & np.asarray(hit).reshape(h, w),
         hit=np.asarray(hit).reshape(h, w), truncation=trunc, surface_radius=float(r_s),
-        volume_radius=None if r_v is None else float(r_v), step_length=float(dx),
+        volume_radius=None if r_v is None else float(r_v), emission_radius=None if r_e is None else float(r_e),
+        step_length=float(dx),
         surface_photons=int(surf.count),
         volume_photons=0 if vmap_arr is None else int(vmap_arr.count),
         emission_photons=0 if vmap_em is None else int(vmap_em.count),
