@@ -372,7 +372,8 @@ class FakeRender:
     def __init__(self, error=None):
         self.calls, self.error = [], error
 
-    def __call__(self, tissue, endoscope, *, spectrum, photons, key, options, trace_options, spectral, chunks, progress):
+    def __call__(self, tissue, endoscope, *, spectrum, photons, key, options, trace_options, spectral, chunks, progress,
+                 observation_filter=None):
         from types import SimpleNamespace
 
         from tests.io.conftest import fake_spectral_result

@@ -34,6 +34,7 @@ from .scene import (  # noqa: E402
     FlatSpectrum as FlatSpectrum,
     Fluorophore as Fluorophore,
     GaussianSpectrum as GaussianSpectrum,
+    LongpassFilter as LongpassFilter,
     LayerOptics as LayerOptics,
     PowerLawScattering as PowerLawScattering,
     SpectralScene as SpectralScene,

@@ -369,7 +369,7 @@ def _render(args: argparse.Namespace) -> int:
         try:
             result = render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
                             key=jax.random.key(seed), options=spec.options, trace_options=run.options,
-                            spectral=run.spectral,
+                            spectral=run.spectral, observation_filter=spec.observation_filter,
                             chunks=chunks, progress=progress)
         except ValueError as err:
             raise _InvalidInput(f"{args.scene}: {err}") from None

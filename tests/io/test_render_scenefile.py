@@ -84,6 +84,8 @@ def test_schema_defaults_match_the_constructors():
     for key, node in props["render"]["properties"].items():
         if key == "photons":
             assert node["default"] == RenderSpec().photons
+        elif key == "observation_filter":  # a spectrum table, none by default
+            assert RenderSpec().observation_filter is None
         elif "default" in node:
             assert node["default"] == getattr(options, key), key
         else:  # no default: an automatic choice (None)
@@ -134,3 +136,22 @@ def test_the_render_example():
     for key in ("ambient", "bands", "layers", "regions"):  # the lesion scene of ppix_polyp.toml
         assert doc[key] == polyp[key], key
     assert doc["source"]["spectrum"] == polyp["source"]["spectrum"]
+
+
+def test_observation_filter_table(tmp_path):
+    text = RENDER + """
+[render.observation_filter]
+kind = "longpass"
+cut_nm = 450.0
+blocked = 0.01
+"""
+    run = read_scene(write(tmp_path, text))
+    f = run.render.observation_filter
+    assert float(f.cut_nm) == 450.0 and float(f.blocked) == 0.01 and float(f.passed) == 1.0 and float(f.width_nm) == 5.0
+    doc = scene_to_dict(run)
+    assert doc["render"]["observation_filter"] == {"kind": "longpass", "cut_nm": 450.0, "width_nm": 5.0,
+                                                   "blocked": 0.01, "passed": 1.0}
+    again = scene_from_dict(doc).render
+    assert again.observation_filter_doc == run.render.observation_filter_doc
+    with pytest.raises(ValueError, match="blocked"):
+        read_scene(write(tmp_path, text.replace("blocked = 0.01", "blocked = 2.0")))

@@ -393,7 +393,7 @@ SPHERE = '\n[[regions]]\nkind = "sphere"\ncenter_cm = [0, 0, 0.1]\nradius_cm = 0
         (_edit(SPECTRAL, SCAT, 'scattering = { kind = "mie" }'),
          'layers[0].scattering.kind = "mie" is not allowed; allowed: "constant", "power_law"'),
         (SPECTRAL + '\n[source.spectrum]\nkind = "laser"\n',
-         'source.spectrum.kind = "laser" is not allowed; allowed: "flat", "gaussian", "boxcar", "violet_led", "table"'),
+         'source.spectrum.kind = "laser" is not allowed; allowed: "flat", "gaussian", "boxcar", "violet_led", "longpass", "table"'),
         (SPECTRAL + '\n[source.spectrum]\nkind = "gaussian"\ncenter_nm = 500\n',
          "source.spectrum: missing required key 'fwhm_nm' (Full width at half maximum [nm], > 0)"),
         (SPECTRAL + SPHERE.replace("radius_cm = 0.05\n", ""),

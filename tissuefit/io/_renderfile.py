@@ -56,6 +56,8 @@ def render_stack(run: SpectralRun, spec: RenderSpec, result, *, seed: int, secon
         "hit_fraction": float(np.mean(result.hit)),
         "covered_fraction": float(np.mean(result.covered)),
         "truncation": _floats(result.truncation),
+        "filter_transmission": None if getattr(result, "filter_transmission", None) is None
+        else _floats(result.filter_transmission),
         "trace": {"mode": trace.mode, "rd_total": float(trace.rd_total),
                   "rd_fluor_total": float(np.sum(np.asarray(trace.rd_fluor))),
                   "budget_exhausted": bool(np.any(np.asarray(trace.budget_exhausted)))},

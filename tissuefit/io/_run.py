@@ -68,6 +68,8 @@ class RenderSpec(eqx.Module):
     - `options`: how radiance is estimated (`tissuefit.render.RenderOptions`).
     - `photons`: photons launched from the lights, 1 .. `MAX_PHOTONS` (default 300 000).
     - `seed`: the render's PRNG seed, or None (then the command line's, else `SpectralRun.seed`, else 0).
+    - `observation_filter`: the camera's filter (a spectrum of transmissions) or None;
+      `observation_filter_doc`: its `[render.observation_filter]` table as JSON text (for echoes).
 
     Plain data; use `dataclasses.replace` to override a field.
     """
@@ -76,6 +78,8 @@ class RenderSpec(eqx.Module):
     options: RenderOptions = eqx.field(static=True, default_factory=RenderOptions)
     photons: int = eqx.field(static=True, default=DEFAULT_RENDER_PHOTONS)
     seed: int | None = eqx.field(static=True, default=None)
+    observation_filter: object = None
+    observation_filter_doc: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         check_positive_int("render.photons", self.photons, high=MAX_PHOTONS)
@@ -116,7 +120,7 @@ class SpectralRun(eqx.Module):
     source_file: str = eqx.field(static=True, default="<memory>")
     document: str = eqx.field(static=True, default="{}")
     input_files: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
-    render: RenderSpec | None = eqx.field(static=True, default=None)
+    render: RenderSpec | None = None  # not static: its observation filter holds arrays
     source_sha256: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):

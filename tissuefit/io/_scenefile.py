@@ -148,12 +148,17 @@ def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: P
     render = None
     if "endoscope" in doc or "render" in doc:
         endoscope = _spectralfile.build_endoscope(ctx, doc.get("endoscope"))
-        render_options = _spectralfile.build_render_options(ctx, doc.get("render"))
-        if endoscope is not None and render_options is not None:
-            render_doc = doc.get("render", {})
+        render_doc = dict(doc.get("render", {}))
+        filter_doc = render_doc.pop("observation_filter", None)
+        render_options = _spectralfile.build_render_options(ctx, render_doc)
+        built_filter = (_spectralfile.build_spectrum(ctx, filter_doc, "render.observation_filter")
+                        if filter_doc is not None else None)
+        if endoscope is not None and render_options is not None and (filter_doc is None or built_filter is not None):
             render = RenderSpec(endoscope=endoscope, options=render_options,
                                 photons=int(render_doc.get("photons", DEFAULT_RENDER_PHOTONS)),
-                                seed=int(render_doc["seed"]) if "seed" in render_doc else None)
+                                seed=int(render_doc["seed"]) if "seed" in render_doc else None,
+                                observation_filter=None if built_filter is None else built_filter[0],
+                                observation_filter_doc=None if built_filter is None else json.dumps(built_filter[1]))
     if ctx.problems:
         refuse(ctx.problems)
     try:
@@ -294,6 +299,8 @@ def render_to_dict(spec: RenderSpec) -> dict:
     automatic bandwidths and step length, and a seed of None, left out)."""
     render = {"photons": int(spec.photons), **({"seed": int(spec.seed)} if spec.seed is not None else {}),
               **_spectralfile.render_options_to_dict(spec.options)}
+    if spec.observation_filter_doc is not None:
+        render["observation_filter"] = json.loads(spec.observation_filter_doc)
     return {"endoscope": _spectralfile.endoscope_to_dict(spec.endoscope), "render": render}
 
 

@@ -34,6 +34,7 @@ from ..scene import (
     Fluorophore,
     GaussianSpectrum,
     LayerOptics,
+    LongpassFilter,
     PowerLawScattering,
     Sphere,
     TabulatedAbsorber,
@@ -218,9 +219,9 @@ def build_bands(ctx: Context, doc: dict | None) -> dict | None:
             "response": doc["response"]}
 
 
-def build_spectrum(ctx: Context, doc: dict | None):
-    """(spectrum, echo) of `source.spectrum` (default flat white light)."""
-    where = "source.spectrum"
+def build_spectrum(ctx: Context, doc: dict | None, where: str = "source.spectrum"):
+    """(spectrum, echo) of `source.spectrum` (default flat white light) or of another spectrum table
+    (`where`, e.g. `render.observation_filter`)."""
     doc = doc or {"kind": "flat"}
     kind = doc["kind"]
 
@@ -233,6 +234,9 @@ def build_spectrum(ctx: Context, doc: dict | None):
         if kind == "violet_led":
             s = violet_led(**{k: doc[k] for k in ("center_nm", "fwhm_nm") if k in doc})
             return s, {"kind": kind, "center_nm": float(s.center_nm), "fwhm_nm": float(s.fwhm_nm)}
+        if kind == "longpass":
+            s = LongpassFilter(**{k: doc[k] for k in ("cut_nm", "width_nm", "blocked", "passed") if k in doc})
+            return s, {"kind": kind, **{k: float(getattr(s, k)) for k in ("cut_nm", "width_nm", "blocked", "passed")}}
         if kind == "boxcar":
             if not doc["high_nm"] > doc["low_nm"]:
                 ctx.fail(f"{where}.high_nm = {doc['high_nm']:g} is not above {where}.low_nm = {doc['low_nm']:g}; "

@@ -136,6 +136,8 @@ class RenderResult(eqx.Module):
       `emission_photons`: records in the maps (volume ones 0 when no volume map was built);
       `photons`: launches traced, `launched_fraction`: the illumination's power they carry.
     - `timings` (dict of seconds: trace, maps, estimate).
+    - `filter_transmission` [bands]: the observation filter's band averages (ones without a filter;
+      `stack` and its parts include it).
     - `trace`: the `SpectralResult` (records dropped).
     - `records`: with `render(..., keep_records=True)`, the (surface, arrival, emission)
       `PhotonRecords` the maps hold, powers per unit illumination power (None where not built).
@@ -160,6 +162,7 @@ class RenderResult(eqx.Module):
     launched_fraction: float
     timings: dict
     trace: object
+    filter_transmission: np.ndarray | None = None
     records: tuple | None = None
 
 
@@ -280,6 +283,7 @@ def render(
     chunks: int = 1,
     progress=None,
     keep_records: bool = False,
+    observation_filter: AbstractSpectrum | None = None,
 ) -> RenderResult:
     """Trace the illumination into `tissue`, build the photon maps and render the camera's stack.
 
@@ -293,6 +297,8 @@ def render(
     - `options`: `RenderOptions`; `trace_options`, `spectral`, `chunks`, `progress` (a callable
       `progress(photons_done)`): passed to `trace_spectral`.
     - `keep_records`: keep the records the maps were built from in `RenderResult.records`.
+    - `observation_filter`: the camera's filter transmission (e.g. `LongpassFilter`, or a
+      `TabulatedSpectrum` of values in [0, 1]); every term is multiplied by its band average.
     Returns a `RenderResult`.
     """
     if not isinstance(tissue, SpectralTissue):
@@ -443,6 +449,14 @@ def render(
         return np.asarray(jnp.where(mask, a, 0.0)).T.reshape(nb, h, w)
 
     surface, fluor, spec = image(l_surface), image(l_fluor), image(l_spec)
+    transmission = np.ones(nb)
+    if observation_filter is not None:
+        if not isinstance(observation_filter, AbstractSpectrum):
+            raise TypeError(f"observation_filter is a {type(observation_filter).__name__}, not a spectrum")
+        transmission = np.asarray(tissue.bands.average(observation_filter), np.float64)
+        if not (np.all(np.isfinite(transmission)) and np.all(transmission >= 0) and np.all(transmission <= 1 + 1e-12)):
+            raise ValueError(f"observation_filter: band transmissions {transmission.round(4).tolist()}; allowed values in [0, 1]")
+        surface, fluor, spec = (a * transmission[:, None, None] for a in (surface, fluor, spec))
     trunc = np.exp(-np.asarray(mua + mus)[0] * options.steps * dx)
     return RenderResult(
         stack=surface + fluor + spec, surface=surface, fluorescence=fluor, specular=spec,
@@ -453,7 +467,7 @@ def render(
         surface_photons=int(surf.count),
         volume_photons=0 if vmap_arr is None else int(vmap_arr.count),
         emission_photons=0 if vmap_em is None else int(vmap_em.count),
-        photons=kept, launched_fraction=fraction, timings=timings,
+        photons=kept, launched_fraction=fraction, timings=timings, filter_transmission=transmission,
         trace=dataclasses.replace(traced, surface_records=None, volume_records=None),
         records=(surf, arrivals, emissions) if keep_records else None,
     )

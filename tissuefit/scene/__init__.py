@@ -17,6 +17,7 @@ from ._spectra import (
     BoxcarSpectrum as BoxcarSpectrum,
     FlatSpectrum as FlatSpectrum,
     GaussianSpectrum as GaussianSpectrum,
+    LongpassFilter as LongpassFilter,
     TabulatedSpectrum as TabulatedSpectrum,
     read_spectrum_table as read_spectrum_table,
     violet_led as violet_led,

@@ -32,6 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -300,6 +301,33 @@ class FlatSpectrum(AbstractSpectrum):
 
     def __call__(self, wavelength):
         return jnp.ones_like(jnp.asarray(wavelength, dtype=jnp.float64))
+
+
+class LongpassFilter(AbstractSpectrum):
+    """A long-pass transmission curve with a smooth (logistic) edge, for camera observation filters:
+
+        T(λ) = blocked + (passed − blocked) / (1 + exp(−(λ − cut) / width))
+
+    Fields [nm, -]: `cut_nm`, `width_nm` (> 0, the edge's logistic scale), `blocked` and `passed`
+    (transmission below and above the edge, in [0, 1]), all differentiable. PDD cameras observe
+    through such a filter: it blocks most of the violet excitation remitted by the tissue (leaving a
+    little for orientation) and passes the red PpIX fluorescence. Product curves differ; measure
+    yours and pass a `TabulatedSpectrum` for quantitative work.
+    """
+
+    cut_nm: Float[Array, ""] = eqx.field(converter=_f64)
+    width_nm: Float[Array, ""] = eqx.field(default=5.0, converter=_f64)
+    blocked: Float[Array, ""] = eqx.field(default=0.0, converter=_f64)
+    passed: Float[Array, ""] = eqx.field(default=1.0, converter=_f64)
+
+    def __check_init__(self):
+        check_range("filter.cut_nm", self.cut_nm, unit="nm", low=0.0, low_open=True)
+        check_range("filter.width_nm", self.width_nm, unit="nm", low=0.0, low_open=True)
+        check_range("filter.blocked", self.blocked, unit="-", low=0.0, high=1.0)
+        check_range("filter.passed", self.passed, unit="-", low=0.0, high=1.0)
+
+    def __call__(self, wavelength):
+        return self.blocked + (self.passed - self.blocked) * jax.nn.sigmoid((wavelength - self.cut_nm) / self.width_nm)
 
 
 class GaussianSpectrum(AbstractSpectrum):
