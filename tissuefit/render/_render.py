@@ -72,7 +72,8 @@ class RenderOptions(eqx.Module):
       mut of the top layer over the lit bands, one mean free path).
     - `kernel`: density kernel (`tissuefit.photonmap.KERNELS`; default Epanechnikov).
     - `surface_radius`, `volume_radius` [cm]: fixed bandwidths (default: chosen from the records,
-      the median distance to the `neighbours`-th nearest record over the pixels / march points,
+      the median distance to the k-th nearest record over the pixels / march points, k =
+      `neighbours` at 1e5 records growing as N^(2/3) on the surface, N^(4/7) in the volume,
       separately for the arrival and the emission records; `volume_radius` sets both).
     - `k`: adaptive k-nearest-record bandwidth instead (the paper's estimate is `kernel="box", k=...`),
       capped at the radius.
@@ -256,15 +257,29 @@ def _footprint(endoscope: Endoscope, margin: float):
     return (x0 - margin, x1 + margin, y0 - margin, y1 + margin)
 
 
+NEIGHBOURS_AT = 100_000
+"""Record count at which `RenderOptions.neighbours` applies; the count grows as the MISE-optimal rate."""
+
+
+def neighbour_count(neighbours: int, records: int, dim: int) -> int:
+    """Records under an automatic kernel: `neighbours` at NEIGHBOURS_AT records, growing as
+    N^(4/(d+4)) (N h^d with the MISE-optimal h ~ N^(-1/(d+4)) of a smooth density, Silverman
+    1986 §3.3; measured h ~ N^-0.185 on the surface, experiments/photonmap/RESULTS.md), so that
+    noise falls as more photons are traced instead of only the blur shrinking."""
+    k = neighbours * (max(records, 1) / NEIGHBOURS_AT) ** (4.0 / (dim + 4.0))
+    return int(max(8, min(round(k), records)))
+
+
 def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, seed: int) -> float:
-    """Median distance from (up to 2048 of) the queries to their `neighbours`-th nearest record [cm]."""
+    """Median distance from (up to 2048 of) the queries to their k-th nearest record [cm], with k
+    from `neighbour_count` (d = the records' dimension)."""
     from scipy.spatial import cKDTree
 
     if records_xyz.shape[0] == 0:
         raise ValueError("render: the photon map is empty (no records); trace more photons")
     rng = np.random.default_rng(seed)
     q = queries[rng.choice(queries.shape[0], min(2048, queries.shape[0]), replace=False)]
-    k = min(neighbours, records_xyz.shape[0])
+    k = neighbour_count(neighbours, records_xyz.shape[0], records_xyz.shape[1])
     dist, _ = cKDTree(records_xyz).query(q, k=[k])
     return float(np.median(dist[:, 0]))
 
@@ -292,8 +307,8 @@ def render(
     - `photons`: launches sampled from the lights (those that cannot reach the camera's view are
       not traced; see `RenderResult.launched_fraction`).
     - `illumination`: default the endoscope's cone lights; `Floodlight(radius)` for a wide beam.
-    - `spectral`: `SpectralOptions` (default: auto mode, analog conversions; a
-      `conversion_boost` > 1 gives more fluorescence records per photon, unbiased).
+    - `spectral`: `SpectralOptions` (default: auto mode, conversion_boost 10 when fluorescence is
+      marched, else analog; a boost gives more fluorescence records per photon, unbiased).
     - `options`: `RenderOptions`; `trace_options`, `spectral`, `chunks`, `progress` (a callable
       `progress(photons_done)`): passed to `trace_spectral`.
     - `keep_records`: keep the records the maps were built from in `RenderResult.records`.
@@ -318,7 +333,11 @@ def render(
     # 1. launches and the trace, with the records the maps need
     fluorescent = tissue.fluorescent
     march = fluorescent and options.fluorescence == "march"
-    spectral = SpectralOptions() if spectral is None else spectral
+    if spectral is None:
+        # The march needs converted photons; with analog conversions the paper's 300 000 launches
+        # leave ~1e3 emission records in view. Odds x10 (unbiased): the angle study's CNR 0.20 ->
+        # 0.67 at 0 deg, and the 300k + 300k map benchmark 81 s -> 30 s (experiments/render).
+        spectral = SpectralOptions(conversion_boost=10.0 if march else 1.0)
     source, kept, fraction = illumination.launches(photons, jax.random.fold_in(key, 1), options.halton,
                                                    _footprint(endoscope, options.margin))
     scene = SpectralScene(tissue, source=source, spectrum=spectrum)
