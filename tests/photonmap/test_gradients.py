@@ -1,5 +1,7 @@
 """Derivatives with respect to the photon powers (and g): finite differences, brute force, modes."""
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -77,3 +79,44 @@ def test_positions_are_not_differentiated(surface_case):
     case = surface_case
     f = lambda shift: jnp.sum(pm.estimate_surface(case["map"], case["q"] + shift, radius=0.04))
     assert float(jax.grad(f)(jnp.asarray(0.01))) == 0.0
+
+
+def test_estimate_is_differentiable_in_tissue_parameters_through_path_statistics(key):
+    """Records carry (L, n) per medium; each record's power is an explicit function of mua and mus
+    (DESIGN.md §5), so an exitance estimate differentiates to the tissue parameters through
+    update_map and the estimator: jax.grad equals central differences of the same function, and
+    d/dmua equals -sum K L w exactly (the pMC derivative)."""
+    import tissuefit as tf
+
+    bands = tf.BandGrid([500.0], 16.0)
+    tissue = tf.SpectralTissue([tf.LayerOptics([tf.ConstantAbsorption(2.0)], tf.ConstantScattering(30.0, 0.8))],
+                               n=[1.4], thickness=[math.inf], bands=bands)
+    got = tf.trace_spectral(tf.SpectralScene(tissue), key=key, photons=4_000, spectral=tf.SpectralOptions(mode="per_band"),
+                            records=tf.RecordSpec(surface=8_192))
+    rec = got.surface_records.valid()
+    w0, path, hits = (jnp.asarray(a) for a in (rec.power, rec.path[:, 0], rec.hits[:, 0]))
+    smap = pm.build_surface_map(rec, cell=0.05, precision="float64")
+    q = jnp.asarray([[0.02, 0.0], [0.1, 0.05], [0.2, -0.1]])
+
+    def exitance(params):
+        mua, mus = params
+        power = w0 * ((mus / 30.0) ** hits * jnp.exp(-(mua + mus - 32.0) * path))[:, None]
+        moved = pm.update_map(smap, eqx_records(rec, power))
+        return pm.estimate_surface(moved, q, radius=0.05)[:, 0]
+
+    p0 = jnp.asarray([2.0, 30.0])
+    jac = jax.jacrev(exitance)(p0)
+    for i, h in enumerate((1e-4, 1e-3)):
+        dp = jnp.zeros(2).at[i].set(h)
+        fd = (exitance(p0 + dp) - exitance(p0 - dp)) / (2 * h)
+        np.testing.assert_allclose(np.asarray(jac[:, i]), np.asarray(fd), rtol=1e-6, atol=1e-12)
+    # the pMC derivative: d/dmua of sum K w is -sum K L w
+    lw = pm.update_map(smap, eqx_records(rec, w0 * path[:, None]))
+    np.testing.assert_allclose(np.asarray(jac[:, 0]), -np.asarray(pm.estimate_surface(lw, q, radius=0.05)[:, 0]), rtol=1e-9)
+    assert np.all(np.asarray(jac[:, 0]) < 0)
+
+
+def eqx_records(rec, power):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda r: r.power, rec, power)
