@@ -419,6 +419,18 @@ def test_render_writes_the_stack_the_pictures_and_the_echo(fake_render, tmp_path
     np.testing.assert_array_equal(jax.random.key_data(call["key"]), jax.random.key_data(jax.random.key(7)))
     stack = io.read_stack(out / "paper_lesion_render.tif")
     assert stack.shape == (21, 6, 8) and stack.kind == "render" and stack.units == io.RENDER_UNITS
+    # tissuefit check STACK validates it without running anything; a damaged TIFF exits 2
+    capsys.readouterr()
+    assert cli.main(["check", str(out / "paper_lesion_render.tif")]) == 0
+    assert "ok: render stack, 21 bands 400–720 nm, 8 x 6 pixels" in capsys.readouterr().out
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    for name in ("paper_lesion_render.tif", "paper_lesion_render.json"):
+        (damaged / name).write_bytes((out / name).read_bytes())
+    tif = damaged / "paper_lesion_render.tif"
+    tif.write_bytes(tif.read_bytes()[: len(tif.read_bytes()) // 2])  # truncated
+    assert cli.main(["check", str(damaged / "paper_lesion_render.json")]) == 2
+    assert "paper_lesion_render" in capsys.readouterr().err
     np.testing.assert_allclose(stack.data[0], 1e-3, rtol=1e-6)
     # the echo: the resolved scene with the overrides, settings as used, counts, timings, provenance
     assert sidecar["scene"]["endoscope"] | {"beta_deg": 30.0, "width": 8, "height": 6} == sidecar["scene"]["endoscope"]

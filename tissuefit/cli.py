@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from . import io
 from .render import render
@@ -91,10 +92,11 @@ def _parser() -> argparse.ArgumentParser:
     ren.add_argument("--json", action="store_true", help="print the stack's sidecar (scene echo, settings, counts, "
                                                          "timings) as JSON instead of a summary")
 
-    check = commands.add_parser("check", help="validate a scene file without running it",
+    check = commands.add_parser("check", help="validate a scene file or a stack without running anything",
                                 description="Validate SCENE (.toml or .mci), single-band or spectral, and report "
-                                            "the number of runs.")
-    check.add_argument("scene", metavar="SCENE", help="scene file: .toml or .mci")
+                                            "the number of runs; or a STACK (.tif or its .json sidecar, "
+                                            "data_spec/stack.md), rendered or measured.")
+    check.add_argument("scene", metavar="SCENE|STACK", help="scene file (.toml, .mci) or stack (.tif, .json)")
     return parser
 
 
@@ -392,7 +394,25 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+STACK_SUFFIXES = (".tif", ".tiff", ".json")
+
+
+def _check_stack(path: Path) -> int:
+    """`tissuefit check STACK`: read and validate a stack (data_spec/stack.md) without running anything."""
+    try:
+        stack = io.read_stack(path)
+    except ValueError as err:
+        raise _InvalidInput(str(err)) from None
+    bands, h, w = stack.data.shape
+    finite = stack.data[np.isfinite(stack.data)]
+    print(f"ok: {stack.kind} stack, {bands} bands {stack.wavelengths[0]:g}–{stack.wavelengths[-1]:g} nm, "
+          f"{w} x {h} pixels, {stack.units}; samples {float(finite.min()):.4g} .. {float(finite.max()):.4g}")
+    return 0
+
+
 def _check(args: argparse.Namespace) -> int:
+    if Path(args.scene).suffix.lower() in STACK_SUFFIXES:
+        return _check_stack(Path(args.scene))
     runs = _load(args.scene)
     print(f"ok: {len(runs)} run(s)")
     for run in runs:
