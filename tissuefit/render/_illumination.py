@@ -80,7 +80,8 @@ class ConeLights(eqx.Module):
         kept = int(keep.sum())
         # rows padded to a bucket (repeating the first; photons >= kept never launch) so that renders
         # of similar photon counts share the tracer's compilation
-        rows = np.concatenate([np.flatnonzero(keep), np.full(bucket(kept) - kept, np.flatnonzero(keep)[0])])
+        rows = np.flatnonzero(keep)
+        rows = np.concatenate([rows, np.full(bucket(kept) - kept, rows[0])])
         return LaunchList(pos[rows], d[rows]), kept, kept / photons
 
     def irradiance(self, points):

@@ -243,12 +243,11 @@ def specular_term(points, view, cos_o, irradiance, incidence, n_above, n_top, si
 # the render
 
 
-def _footprint(endoscope: Endoscope, margin: float):
-    origin, d = endoscope.pixel_rays()
-    x, hit = surface_hits(origin, d)
+def _footprint(endoscope: Endoscope, hits_xyz, hit, margin: float):
+    """(xmin, xmax, ymin, ymax) [cm] of the surface the pixel rays meet, plus `margin`."""
     if not bool(jnp.any(hit)):
         raise ValueError(f"render: with beta_deg = {endoscope.beta_deg:g} no pixel ray meets the tissue surface")
-    x = np.asarray(x)[np.asarray(hit)]
+    x = np.asarray(hits_xyz)[np.asarray(hit)]
     # pixels near the horizon see very far: the tissue the camera resolves is bounded at 20 working distances
     reach = 20 * endoscope.distance
     t = np.asarray(endoscope.target)
@@ -338,8 +337,10 @@ def render(
         # leave ~1e3 emission records in view. Odds x10 (unbiased): the angle study's CNR 0.20 ->
         # 0.67 at 0 deg, and the 300k + 300k map benchmark 81 s -> 30 s (experiments/render).
         spectral = SpectralOptions(conversion_boost=10.0 if march else 1.0)
+    origin, direction = endoscope.pixel_rays()
+    hits_xyz, hit = surface_hits(origin, direction)
     source, kept, fraction = illumination.launches(photons, jax.random.fold_in(key, 1), options.halton,
-                                                   _footprint(endoscope, options.margin))
+                                                   _footprint(endoscope, hits_xyz, hit, options.margin))
     scene = SpectralScene(tissue, source=source, spectrum=spectrum)
     capacity = bucket(options.volume_capacity * kept) if march else 0
     for _ in range(4):
@@ -361,8 +362,6 @@ def render(
     if march:
         surf = surf.select(~surf.converted)
     surf = eqx.tree_at(lambda r: r.power, surf, surf.power * fraction)
-    origin, direction = endoscope.pixel_rays()
-    hits_xyz, hit = surface_hits(origin, direction)
     hits_np = np.asarray(hits_xyz)[np.asarray(hit)]
     r_s = options.surface_radius or _auto_radius(surf.position[:, :2], hits_np[:, :2], options.neighbours, 1)
     # one extra column of ones counts the records under the kernel (coverage)
@@ -380,7 +379,8 @@ def render(
     # march points: midpoints of S steps along the refracted rays
     cos_o = jnp.where(hit, direction[:, 2], 1.0)
     ratio = n_above / n_top
-    _, cos_t = phys.fresnel(jnp.asarray(n_above), jnp.asarray(n_top), cos_o)
+    r_o, cos_t = phys.fresnel(jnp.asarray(n_above), jnp.asarray(n_top), cos_o)
+    t_fresnel = 1.0 - r_o  # the surface's transmittance along each pixel's ray (either way)
     inward = jnp.stack([direction[:, 0] * ratio, direction[:, 1] * ratio, cos_t], axis=1)
     mids = (jnp.arange(options.steps, dtype=jnp.float64) + 0.5) * dx
     march_pts = hits_xyz[:, None, :] + mids[None, :, None] * inward[:, None, :]  # [P, S, 3]
@@ -410,7 +410,7 @@ def render(
     m = estimate_surface(smap, q_xy, kernel=options.kernel, radius=r_s, k=options.k).astype(jnp.float64)
     exitance, count = m[:, :-1], m[:, -1]
     z_norm = angular_norm(n_above, n_top, options.angular)
-    t_o = fresnel_transmittance(n_above, n_top, cos_o) if options.angular == "fresnel" else jnp.ones_like(cos_o)
+    t_o = t_fresnel if options.angular == "fresnel" else jnp.ones_like(cos_o)
     l_surface = exitance * (t_o / z_norm)[:, None]
 
     nb = tissue.bands.num_bands
@@ -451,7 +451,7 @@ def render(
         tau_start = tau_end - mut_s * dx
         seg = jnp.where(mut_s > 0, jnp.exp(-tau_start) * -jnp.expm1(-mut_s * dx) / jnp.where(mut_s > 0, mut_s, 1.0), dx)
         l_in = jnp.sum(seg * q.reshape(-1, options.steps, nb), axis=1)
-        l_fluor = l_in * (fresnel_transmittance(n_above, n_top, cos_o) * ratio**2)[:, None]
+        l_fluor = l_in * (t_fresnel * ratio**2)[:, None]
 
     l_spec = jnp.zeros_like(l_surface)
     if options.specular_deg > 0:

@@ -109,11 +109,15 @@ class SpectralTissue(eqx.Module):
         p = jnp.asarray(points)
         z0 = self.geometry.z0.astype(p.dtype)
         layer = jnp.clip(jnp.searchsorted(z0, p[:, 2], side="right") - 1, 0, self.num_layers - 1).astype(jnp.int32)
+        return self.medium_in_layer(layer, p.T)
+
+    def medium_in_layer(self, layer: Array, p: Float[Array, "3 n"]) -> Array:
+        """Medium index of points `p` [3, n] (x, y, depth) [cm] known to lie in layer `layer` [n]:
+        the region medium of that layer containing them, else the layer."""
         medium = layer
-        pt = p.T
         for region, offset in zip(self.regions, self.region_offsets()):
-            inside = (layer == region.layer) & region.contains(pt)
-            medium = jnp.where(inside, offset + region.local_medium(pt), medium)
+            inside = (layer == region.layer) & region.contains(p)
+            medium = jnp.where(inside, offset + region.local_medium(p), medium)
         return medium
 
     @property

@@ -75,21 +75,15 @@ def _record_rows(lanes: _Lanes, position, direction, band, emission=False) -> di
                 emission=jnp.full(lanes.w.shape, emission))
 
 
-def _medium_at(regions, offsets, layer: Array, x, y, zabs, u) -> Array:
-    """Medium of points just inside layer `layer`: the region medium of that layer containing them
-    (a voxel grid's voxel), else the layer. `offsets`: each region's first medium index.
+def _medium_at(tissue, layer: Array, x, y, zabs, u) -> Array:
+    """Medium of points just inside layer `layer` (`SpectralTissue.medium_in_layer`).
 
     The point (on a layer face) is moved along the direction `u` (3 arrays) until it is NUDGE cm
     past the face, so that it belongs to the side the photon moves into."""
-    medium = layer
-    if not regions:
-        return medium
+    if not tissue.regions:
+        return layer
     t = NUDGE / jnp.maximum(jnp.abs(u[2]), 1e-3)
-    p = jnp.stack([x + u[0] * t, y + u[1] * t, zabs + u[2] * t])
-    for region, offset in zip(regions, offsets):
-        inside = (layer == region.layer) & region.contains(p)
-        medium = jnp.where(inside, offset + region.local_medium(p), medium)
-    return medium
+    return tissue.medium_in_layer(layer, jnp.stack([x + u[0] * t, y + u[1] * t, zabs + u[2] * t]))
 
 
 def _isotropic(xi_a: Array, xi_b: Array) -> tuple[Array, Array, Array]:
@@ -125,7 +119,7 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
     else:
         pick = jnp.zeros(x.shape, jnp.int32)
     shared = config.shared
-    med = _medium_at(scene.tissue.regions, scene.tissue.region_offsets(), layer, x, y, _pick(medium.z0, layer), (ux, uy, uz))
+    med = _medium_at(scene.tissue, layer, x, y, _pick(medium.z0, layer), (ux, uy, uz))
     zeros = jnp.zeros_like(x)
     new = _Lanes(
         # shared: the spectrum is kept with its largest entry 1, its scale in W (roulette reads W)
@@ -212,7 +206,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     new_med = med
     if regions:
         # past a face or a region boundary: the medium the photon moves into
-        b_med = jnp.where(crossed, _medium_at(regions, offsets, b_layer, x, y, _pick(medium.z0, b_layer) + b_z, (bx, by, bz)), med)
+        b_med = jnp.where(crossed, _medium_at(tissue, b_layer, x, y, _pick(medium.z0, b_layer) + b_z, (bx, by, bz)), med)
         new_med = jnp.where(hit_face, b_med, jnp.where(hit_reg, target, med))
     else:
         new_med = jnp.where(hit_face & crossed, b_layer, med)
