@@ -1,6 +1,8 @@
 """Files: scene files (TOML, data_spec/scene.md; single-band or spectral), MCML's .mci input and
 .mco output, JSON run records and their plots, multi-spectral stacks (TIFF + JSON sidecar,
-data_spec/stack.md) with their sRGB previews and contact sheets.
+data_spec/stack.md) with their sRGB previews and contact sheets, measured stacks (sidecar, folder
+of bands, ENVI; data_spec/measured.md) with their calibration, band registration and dead-band
+masks.
 
 This is the only package that reads or writes files. Every reader validates before anything runs
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
@@ -8,6 +10,12 @@ and names the file, the line or field, the value, the unit and the allowed range
 
 from .._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
 from ._checkpoint import load_trace_state as load_trace_state, save_trace_state as save_trace_state
+from ._envi import parse_envi_header as parse_envi_header, read_envi as read_envi
+from ._measured import (
+    MeasuredStack as MeasuredStack,
+    read_measured as read_measured,
+    wavelength_from_name as wavelength_from_name,
+)
 from ._mci import read_mci as read_mci
 from ._mco import read_mco as read_mco, write_mco as write_mco
 from ._report import (
@@ -24,6 +32,14 @@ from ._preview import (
     stack_to_xyz as stack_to_xyz,
     write_contact_sheet as write_contact_sheet,
     write_preview as write_preview,
+)
+from ._preprocess import (
+    Registration as Registration,
+    calibrate as calibrate,
+    dead_bands as dead_bands,
+    mask_dead_bands as mask_dead_bands,
+    prepare_measured as prepare_measured,
+    register_bands as register_bands,
 )
 from ._renderfile import render_stack as render_stack
 from ._run import (
@@ -46,5 +62,6 @@ from ._stack import (
     SpectralStack as SpectralStack,
     make_stack as make_stack,
     read_stack as read_stack,
+    read_stack_with_references as read_stack_with_references,
     write_stack as write_stack,
 )
