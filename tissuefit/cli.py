@@ -1,5 +1,5 @@
 """Command line: `tissuefit simulate SCENE`, `tissuefit render SCENE --out DIR`, `tissuefit check SCENE`,
-`tissuefit --version`.
+`tissuefit compare SIM MEASURED --out DIR`, `tissuefit --version`.
 
 Thin by design: parse arguments → read and validate the scene file (tissuefit.io) → call
 `tissuefit.trace` (single-band scenes), `tissuefit.trace_spectral` (spectral scenes) or
@@ -97,6 +97,7 @@ def _parser() -> argparse.ArgumentParser:
                                             "the number of runs; or a STACK (.tif or its .json sidecar, "
                                             "data_spec/stack.md), rendered or measured.")
     check.add_argument("scene", metavar="SCENE|STACK", help="scene file (.toml, .mci) or stack (.tif, .json)")
+    _add_compare_parser(commands)
     return parser
 
 
@@ -430,11 +431,105 @@ def _check(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_compare_parser(commands) -> None:
+    cmp = commands.add_parser(
+        "compare", help="compare a simulated stack with a measured one (SSIM, PSNR, RMSE, spectral angle)",
+        description="Prepare MEASURED (dark/white calibration, dead-band masks, band registration; "
+                    "data_spec/measured.md), register it onto SIM's grid, and compare them band by band: "
+                    "SSIM, PSNR, RMSE and the spectral angle. Writes DIR/compare.json (the report, with the "
+                    "registration shifts and the dead bands) and DIR/compare.png (simulated | measured | "
+                    "difference per band).")
+    cmp.add_argument("sim", metavar="SIM", help="simulated stack (.tif or .json; data_spec/stack.md)")
+    cmp.add_argument("measured", metavar="MEASURED",
+                     help="measured stack: a sidecar (.json or .tif), a folder of band images named by wavelength, "
+                          "or an ENVI header (.hdr)")
+    cmp.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for compare.json and compare.png")
+    cmp.add_argument("--bands", metavar="NM[,NM...]",
+                     help="centre wavelengths [nm] of the bands in the panel (default: up to 4 spread over the bands)")
+    cmp.add_argument("--normalise", choices=io.COMPARE_NORMALISE, default="stack",
+                     help="gain on the simulation: one least-squares gain for the stack (default), one per band, "
+                          "or none")
+    cmp.add_argument("--no-register", action="store_true",
+                     help="skip the band-to-band and simulation-to-measured registration")
+    cmp.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+
+
+def _compare_table(report: dict, files: list[Path]) -> str:
+    def num(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    gain = num(report["gain"], ".4g") if report["normalise"] == "stack" else "per band"
+    lines = [f"{report['measured']['source']} ({report['measured']['units']}) vs {report['sim']['file']}: "
+             + f"normalise {report['normalise']}, gain {gain}",
+             f"  {'nm':>7} {'SSIM':>7} {'PSNR dB':>8} {'RMSE':>11}  status"]
+    for row in report["bands"]:
+        status = "ok" if row["good"] else f"DEAD: {row.get('dead_reason', '')}"
+        lines.append(f"  {row['wavelength_nm']:>7g} {num(row['ssim'], '.3f'):>7} {num(row['psnr_db'], '.2f'):>8} "
+                     f"{num(row['rmse'], '.4g'):>11}  {status}")
+    angle = report["spectral_angle_deg"]
+    lines.append(f"  spectral angle: mean {num(angle['mean'], '.3f')} deg, median {num(angle['median'], '.3f')} deg "
+                 f"over {angle['pixels']} pixels and {angle['bands']} bands")
+    bands = (report["registration"]["bands"] or {}).get("shifts_px")
+    if bands:
+        shown = ", ".join(f"{wl:g}: " + ("-" if s is None else f"({s[0]:+.2f}, {s[1]:+.2f})")
+                          for wl, s in zip([r["wavelength_nm"] for r in report["bands"]], bands))
+        lines.append(f"  band shifts [px] (row, column): {shown}")
+    whole = report["registration"]["sim_to_measured"]
+    if "shift_px" in whole:
+        lines.append(f"  measured onto simulation: shift ({whole['shift_px'][0]:+.2f}, {whole['shift_px'][1]:+.2f}) px, "
+                     f"correlation {whole['correlation']:.3f}" + ("" if whole["applied"] else " (not applied)"))
+    for dead in report["dead_bands"]:
+        lines.append(f"  dead band {dead['band']} ({dead['wavelength_nm']:g} nm): {dead['reason']} (masked)")
+    for extra in report["unmatched_bands"]:
+        lines.append(f"  measured band {extra['band']} ({extra['wavelength_nm']:g} nm) has no simulated band "
+                     f"(nearest {extra['nearest_sim_nm']:g} nm): not compared")
+    lines.append("  wrote " + ", ".join(str(f) for f in files))
+    return "\n".join(lines)
+
+
+def _compare(args: argparse.Namespace) -> int:
+    """`tissuefit compare SIM MEASURED --out DIR`: report and panel of a simulated against a measured stack."""
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    try:
+        sim = io.read_stack(args.sim)
+        measured = io.read_measured(args.measured)
+        comparison = io.compare_stacks(sim, measured, register=not args.no_register, normalise=args.normalise,
+                                       sim_file=str(args.sim))
+    except ValueError as err:
+        raise _InvalidInput(str(err)) from None
+    selected = None
+    if args.bands:
+        selected = []
+        for text in args.bands.split(","):
+            try:
+                wl = float(text)
+            except ValueError:
+                raise _InvalidInput(f"--bands: {text!r} is not a number; allowed wavelengths [nm] separated by commas"
+                                    ) from None
+            distance = np.abs(comparison.wavelengths - wl)
+            if not distance.min() <= 1.0:
+                raise _InvalidInput(f"--bands: {wl:g} nm is not a compared band; allowed: "
+                                    + ", ".join(f"{v:g}" for v in comparison.wavelengths) + " nm")
+            selected.append(int(np.argmin(distance)))
+    picture = io.comparison_panel_png(comparison, bands=selected, title=f"{args.sim} vs {args.measured}")
+    out.mkdir(parents=True, exist_ok=True)
+    io.write_json(out / "compare.json", comparison.report)
+    with atomic_writer(out / "compare.png", binary=True) as handle:
+        handle.write(picture)
+    if args.json:
+        print(json.dumps(comparison.report, indent=2, allow_nan=False))
+    else:
+        print(_compare_table(comparison.report, [out / "compare.json", out / "compare.png"]), flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `tissuefit` command; returns the exit status (2 for invalid input)."""
     args = _parser().parse_args(argv)
     try:
-        return {"simulate": _simulate, "render": _render, "check": _check}[args.command](args)
+        return {"simulate": _simulate, "render": _render, "check": _check, "compare": _compare}[args.command](args)
     except _InvalidInput as err:
         print(f"tissuefit: error: {err}", file=sys.stderr)
         return EXIT_INVALID

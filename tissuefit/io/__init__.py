@@ -1,8 +1,8 @@
 """Files: scene files (TOML, data_spec/scene.md; single-band or spectral), MCML's .mci input and
 .mco output, JSON run records and their plots, multi-spectral stacks (TIFF + JSON sidecar,
 data_spec/stack.md) with their sRGB previews and contact sheets, measured stacks (sidecar, folder
-of bands, ENVI; data_spec/measured.md) with their calibration, band registration and dead-band
-masks.
+of bands, ENVI; data_spec/measured.md) with their calibration, band registration, dead-band masks
+and the comparison with a simulation.
 
 This is the only package that reads or writes files. Every reader validates before anything runs
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
@@ -10,6 +10,14 @@ and names the file, the line or field, the value, the unit and the allowed range
 
 from .._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
 from ._checkpoint import load_trace_state as load_trace_state, save_trace_state as save_trace_state
+from ._compare import (
+    COMPARE_NORMALISE as COMPARE_NORMALISE,
+    Comparison as Comparison,
+    band_metrics as band_metrics,
+    compare_stacks as compare_stacks,
+    comparison_panel_png as comparison_panel_png,
+    spectral_angle as spectral_angle,
+)
 from ._envi import parse_envi_header as parse_envi_header, read_envi as read_envi
 from ._measured import (
     MeasuredStack as MeasuredStack,
