@@ -1,5 +1,7 @@
 """Long runs: an interrupted and resumed run equals an uninterrupted one exactly."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -62,3 +64,42 @@ def test_cli_checkpoint_is_removed_after_success(tmp_path, capsys):
     )
     assert cli.main(["simulate", str(scene), "--checkpoint", str(tmp_path / "ck")]) == 0
     assert list((tmp_path / "ck").iterdir()) == []
+
+
+def test_cli_run_interrupted_after_a_checkpoint_resumes_to_the_uninterrupted_result(tmp_path, capsys, monkeypatch):
+    """`tissuefit simulate --checkpoint`: Ctrl-C after chunk 2 of 4, then the same command again,
+    prints exactly what one uninterrupted run prints (timings aside)."""
+    scene = tmp_path / "vdh.toml"
+    scene.write_text(
+        'format = "tissuefit-scene/1"\nname = "vdh"\n[ambient]\nn_above = 1.0\nn_below = 1.0\n[[layers]]\n'
+        'n = 1.0\nmua = 10.0\nmus = 90.0\ng = 0.75\nthickness = 0.02\n[run]\nphotons = 4000\nseed = 5\nlanes = 512\n'
+        '[tallies]\nnames = ["rd_r", "tt_a"]\nnr = 10\nna = 5\n'
+    )
+    monkeypatch.setattr(cli, "PHOTONS_PER_CHUNK", 1000)  # 4 chunks
+    checkpoints = tmp_path / "ck"
+    state_file = checkpoints / "vdh.state.npz"
+    save = tf.io.save_trace_state
+
+    def save_then_interrupt(path, state):
+        save(path, state)
+        if state.chunks_done == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(tf.io, "save_trace_state", save_then_interrupt)
+    command = ["simulate", str(scene), "--json", "--checkpoint", str(checkpoints)]
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(command)
+    assert load_trace_state(state_file).chunks_done == 2
+    capsys.readouterr()
+    saved = []
+    monkeypatch.setattr(tf.io, "save_trace_state", lambda path, state: (saved.append(state.chunks_done), save(path, state)))
+
+    assert cli.main(command) == 0
+    resumed = json.loads(capsys.readouterr().out)
+    assert saved == [3, 4]  # it resumed: only chunks 3 and 4 were traced
+    assert not state_file.exists()
+    assert cli.main(["simulate", str(scene), "--json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    for record in (resumed, whole):
+        del record["seconds"], record["photons_per_second"]
+    assert resumed == whole
