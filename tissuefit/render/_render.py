@@ -52,10 +52,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array
 
 from .._checks import check_positive_int, check_range
-from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile
+from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile, update_map
 from ..photonmap._kernels import KERNELS
 from ..scene import FlatSpectrum, SpectralScene, SpectralTissue
 from ..scene._spectra import AbstractSpectrum
@@ -142,6 +142,8 @@ class RenderResult(eqx.Module):
     - `trace`: the `SpectralResult` (records dropped).
     - `records`: with `render(..., keep_records=True)`, the (surface, arrival, emission)
       `PhotonRecords` the maps hold, powers per unit illumination power (None where not built).
+    - `replay`: with `render(..., replay=True)`, a `RenderReplay`: the stack as an explicit,
+      differentiable function of the tissue's coefficients (path replay of the same records).
     """
 
     stack: np.ndarray
@@ -165,6 +167,143 @@ class RenderResult(eqx.Module):
     trace: object
     filter_transmission: np.ndarray | None = None
     records: tuple | None = None
+    replay: "RenderReplay | None" = None
+
+
+class _Shading(eqx.Module):
+    """What the estimate stage needs besides the tissue's coefficients and the photon maps: the
+    pixels' surface points and march points, the kernels' boundary masses, the Fresnel factors
+    (all fixed by the geometry and the records' positions)."""
+
+    q_xy: Array  # [P, 2] surface points of the pixels' rays (the target for rays that miss)
+    t_surface: Array  # [P] T(theta_o)/Z: exitance -> radiance
+    t_out: Array  # [P] T(theta_o) (n_above/n)^2: in-tissue radiance -> outside
+    pts: Array | None  # [Q, 3] march points (P x S)
+    up: Array | None  # [Q, 3] the direction towards the surface at each march point
+    med: Array | None  # [Q] medium of each march point
+    mass_arr: Array | None  # [Q, 1] kernel mass inside the tissue (arrival map)
+    mass_em: Array | None  # [Q, 1] (emission map)
+    g_groups: tuple = eqx.field(static=True)  # distinct traced g values at the march points
+    g0_q: Array | None = None  # [Q, bands] the traced g at the march points (group membership)
+    radii: tuple = eqx.field(static=True, default=(None, None, None))  # (surface, arrival, emission) [cm]
+    dx: float = eqx.field(static=True, default=0.0)
+    options: RenderOptions = eqx.field(static=True, default=RenderOptions())
+
+
+def _shade(sh: _Shading, mua, mus, g, smap, vmap_arr, vmap_em, *, linear_g: bool = False):
+    """The surface and volume terms per pixel [P, bands] (and the surface kernel's record count [P]).
+
+    A pure function of the coefficients (mua, mus, g [media, bands]) and the maps' powers. With
+    `linear_g` the phase function's g enters to first order around the traced values (the volume
+    estimate and its derivative in g, per group of equal traced g), as the records' own g factor
+    does in a replay (the derivative in g evaluated with the traced powers: exact first derivatives,
+    an error of order (g - g0)(P - P0) away from the traced point); otherwise at the traced values."""
+    options = sh.options
+    r_s, r_v, r_e = sh.radii
+    m = estimate_surface(smap, sh.q_xy, kernel=options.kernel, radius=r_s, k=options.k).astype(jnp.float64)
+    exitance, count = m[:, :-1], m[:, -1]
+    l_surface = exitance * sh.t_surface[:, None]
+    l_fluor = jnp.zeros_like(l_surface)
+    if sh.pts is None:
+        return l_surface, l_fluor, count
+    nb, steps, dx = l_surface.shape[1], options.steps, sh.dx
+    mua_q, mus_q, g_q = mua[sh.med], mus[sh.med], g[sh.med]  # [Q, bands]
+    mut_q = mua_q + mus_q
+    albedo = jnp.where(mut_q > 0, mus_q / jnp.where(mut_q > 0, mut_q, 1.0), 0.0)
+    q = jnp.zeros((sh.pts.shape[0], nb))
+    if vmap_arr is not None:
+        scattered = jnp.zeros_like(q)
+        for gv in sh.g_groups:  # one estimate per distinct anisotropy (usually one)
+            def est(photon_map, gg):
+                return estimate_volume(photon_map, sh.pts, sh.up, g=gg, kernel=options.kernel, radius=r_v,
+                                       k=options.k).astype(jnp.float64)
+
+            e = est(vmap_arr, gv)
+            if linear_g:
+                # d est / d g from the traced powers: the g term vanishes at the traced point, so its
+                # dependence on the powers is second order (and this keeps reverse mode available)
+                frozen = jax.lax.stop_gradient(vmap_arr)
+                _, de = jax.jvp(lambda gg: est(frozen, gg), (jnp.asarray(gv, jnp.float64),), (jnp.asarray(1.0, jnp.float64),))
+                e = e + (g_q - gv) * de
+            scattered = scattered + jnp.where(sh.g0_q == gv, albedo * e, 0.0)
+        q = q + scattered / sh.mass_arr
+    if vmap_em is not None:
+        emitted = estimate_volume(vmap_em, sh.pts, phase="isotropic", kernel=options.kernel, radius=r_e,
+                                  k=options.k).astype(jnp.float64)
+        q = q + emitted / sh.mass_em
+    # exact exponential over each step, Q constant on it
+    mut_s = mut_q.reshape(-1, steps, nb)
+    tau_end = jnp.cumsum(mut_s * dx, axis=1)
+    tau_start = tau_end - mut_s * dx
+    seg = jnp.where(mut_s > 0, jnp.exp(-tau_start) * -jnp.expm1(-mut_s * dx) / jnp.where(mut_s > 0, mut_s, 1.0), dx)
+    l_in = jnp.sum(seg * q.reshape(-1, steps, nb), axis=1)
+    return l_surface, l_in * sh.t_out[:, None], count
+
+
+@eqx.filter_jit
+def _replay_stack(replay: "RenderReplay", tissue):
+    l_s, l_f = replay.terms(tissue)
+    return l_s + l_f + replay.specular
+
+
+def _with_power(records, power):
+    return eqx.tree_at(lambda r: r.power, records, power)
+
+
+class RenderReplay(eqx.Module):
+    """A render's stack as an explicit function of the tissue's coefficients (path replay).
+
+    The records the maps were built from are replayed (`tissuefit.replay.RecordReplay`): their
+    powers at another tissue, the same positions, so the same maps, bandwidths and march points;
+    the volume term's albedo and attenuation take the new coefficients, its phase function the new
+    g to first order. `stack(tissue)` [bands, H, W] is differentiable (jax.jacfwd, jax.grad, jvp;
+    jit-able) in every coefficient of `tissue` (mua, mus, g per medium and band, fluorophore
+    concentrations and yields, spectral-model coefficients) and equals the render's stack at the
+    traced tissue (up to float32 rounding of the maps). Not differentiable: n, thicknesses, region
+    geometry, the endoscope (the records' positions would move).
+    """
+
+    surface: object  # RecordReplay of the surface map's records (power per unit illumination power)
+    arrivals: object | None
+    emissions: object | None
+    maps: tuple  # (surface map, arrival map or None, emission map or None) at the traced tissue
+    shading: _Shading
+    specular: Array  # [bands, H, W] (does not depend on the tissue's coefficients)
+    transmission: Array  # [bands]
+    hit: Array  # [H, W]
+
+    def terms(self, tissue: SpectralTissue):
+        """(surface, fluorescence) images [bands, H, W] at `tissue` (JAX arrays)."""
+        smap, vmap_arr, vmap_em = self.maps
+        p_s = self.surface.power(tissue)
+        smap = update_map(smap, _with_power(self.surface.records, jnp.concatenate([p_s, jnp.ones((p_s.shape[0], 1))], axis=1)))
+        if vmap_arr is not None:
+            vmap_arr = update_map(vmap_arr, _with_power(self.arrivals.records, self.arrivals.power(tissue)))
+        if vmap_em is not None:
+            vmap_em = update_map(vmap_em, _with_power(self.emissions.records, self.emissions.power(tissue)))
+        mua, mus, g = (jnp.asarray(a, jnp.float64) for a in tissue.properties())
+        l_s, l_f, _ = _shade(self.shading, mua, mus, g, smap, vmap_arr, vmap_em, linear_g=True)
+        h, w = self.hit.shape
+        nb = l_s.shape[1]
+        mask = self.hit.reshape(-1)[:, None]
+
+        def image(a):
+            return jnp.where(mask, a, 0.0).T.reshape(nb, h, w) * self.transmission[:, None, None]
+
+        return image(l_s), image(l_f)
+
+    def stack(self, tissue: SpectralTissue):
+        """The stack [bands, H, W] at `tissue`: surface + fluorescence + specular (compiled once per
+        replay structure; differentiable and vmap-able in `tissue`)."""
+        return _replay_stack(self, tissue)
+
+    def effective_sample_size(self, tissue: SpectralTissue) -> dict:
+        """Per map, the records' effective sample size at `tissue` relative to the trace [bands]."""
+        out = {"surface": self.surface.effective_sample_size(tissue)}
+        for name, rep in (("arrivals", self.arrivals), ("emissions", self.emissions)):
+            if rep is not None:
+                out[name] = rep.effective_sample_size(tissue)
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,6 +437,7 @@ def render(
     progress=None,
     keep_records: bool = False,
     observation_filter: AbstractSpectrum | None = None,
+    replay: bool = False,
 ) -> RenderResult:
     """Trace the illumination into `tissue`, build the photon maps and render the camera's stack.
 
@@ -313,6 +453,9 @@ def render(
     - `keep_records`: keep the records the maps were built from in `RenderResult.records`.
     - `observation_filter`: the camera's filter transmission (e.g. `LongpassFilter`, or a
       `TabulatedSpectrum` of values in [0, 1]); every term is multiplied by its band average.
+    - `replay`: also return `RenderResult.replay`, the stack as a differentiable function of the
+      tissue (`RenderReplay`); the records then carry replay statistics and fluorescent scenes are
+      traced per band.
     Returns a `RenderResult`.
     """
     if not isinstance(tissue, SpectralTissue):
@@ -345,7 +488,7 @@ def render(
     capacity = bucket(options.volume_capacity * kept) if march else 0
     for _ in range(4):
         # capacities rounded up to buckets, so that renders of similar photon counts share a compile
-        records = RecordSpec(surface=bucket(kept), volume=capacity, emission=march)
+        records = RecordSpec(surface=bucket(kept), volume=capacity, emission=march, replay=replay)
         traced = trace_spectral(scene, key=key, photons=kept, options=trace_options, spectral=spectral,
                                 records=records, chunks=chunks, progress=progress)
         vol = traced.volume_records
@@ -407,25 +550,23 @@ def render(
     # 3. estimates per pixel
     t2 = time.perf_counter()
     q_xy = jnp.where(hit[:, None], hits_xyz[:, :2], jnp.asarray(endoscope.target)[None, :])
-    m = estimate_surface(smap, q_xy, kernel=options.kernel, radius=r_s, k=options.k).astype(jnp.float64)
-    exitance, count = m[:, :-1], m[:, -1]
     z_norm = angular_norm(n_above, n_top, options.angular)
     t_o = t_fresnel if options.angular == "fresnel" else jnp.ones_like(cos_o)
-    l_surface = exitance * (t_o / z_norm)[:, None]
-
     nb = tissue.bands.num_bands
-    l_fluor = jnp.zeros_like(l_surface)
+    pts = up = med = mass_arr = mass_em = g0_q = None
+    g_groups = ()
     if march:
         pts = march_pts.reshape(-1, 3)
         ok = jnp.repeat(hit, options.steps)
         pts = jnp.where(ok[:, None], pts, jnp.asarray([*endoscope.target, dx])[None, :])
         up = -jnp.repeat(inward, options.steps, axis=0)
         med = tissue.medium_at(pts)
-        mua_q, mus_q, g_q = mua[med], mus[med], g[med]  # [Q, bands]
-        mut_q = mua_q + mus_q
-        albedo = jnp.where(mut_q > 0, mus_q / jnp.where(mut_q > 0, mut_q, 1.0), 0.0)
+        g0_q = g[med]
+
         def mass(photon_map, radius):
             """The part of each query's kernel inside the tissue (its k-NN radius with `k`)."""
+            if photon_map is None:
+                return None
             if options.k is None:
                 return boundary_mass(pts[:, 2], jnp.full(pts.shape[0], radius), options.kernel)[:, None]
             from ..photonmap import knn_radius
@@ -433,25 +574,13 @@ def render(
             r_q = knn_radius(photon_map, pts, k=options.k, radius=radius).astype(jnp.float64)
             return boundary_mass(pts[:, 2], r_q, options.kernel)[:, None]
 
-        q = jnp.zeros((pts.shape[0], nb))
-        if vmap_arr is not None:
-            scattered = jnp.zeros_like(q)
-            for gv in np.unique(np.asarray(g_q)[:, active]):  # one estimate per distinct anisotropy (usually one)
-                est = estimate_volume(vmap_arr, pts, up, g=float(gv), kernel=options.kernel, radius=r_v,
-                                      k=options.k).astype(jnp.float64)
-                scattered = scattered + jnp.where(g_q == gv, albedo * est, 0.0)
-            q = q + scattered / mass(vmap_arr, r_v)
-        if vmap_em is not None:
-            emitted = estimate_volume(vmap_em, pts, phase="isotropic", kernel=options.kernel, radius=r_e,
-                                      k=options.k).astype(jnp.float64)
-            q = q + emitted / mass(vmap_em, r_e)
-        # exact exponential over each step, Q constant on it
-        mut_s = mut_q.reshape(-1, options.steps, nb)
-        tau_end = jnp.cumsum(mut_s * dx, axis=1)
-        tau_start = tau_end - mut_s * dx
-        seg = jnp.where(mut_s > 0, jnp.exp(-tau_start) * -jnp.expm1(-mut_s * dx) / jnp.where(mut_s > 0, mut_s, 1.0), dx)
-        l_in = jnp.sum(seg * q.reshape(-1, options.steps, nb), axis=1)
-        l_fluor = l_in * (t_fresnel * ratio**2)[:, None]
+        mass_arr, mass_em = mass(vmap_arr, r_v), mass(vmap_em, r_e)
+        g_groups = tuple(float(v) for v in np.unique(np.asarray(g0_q)[:, active]))
+    shading = _Shading(q_xy=q_xy, t_surface=t_o / z_norm, t_out=t_fresnel * ratio**2, pts=pts, up=up, med=med,
+                       mass_arr=mass_arr, mass_em=mass_em, g_groups=g_groups, g0_q=g0_q,
+                       radii=(float(r_s), None if r_v is None else float(r_v), None if r_e is None else float(r_e)),
+                       dx=float(dx), options=options)
+    l_surface, l_fluor, count = _shade(shading, mua, mus, g, smap, vmap_arr, vmap_em)
 
     l_spec = jnp.zeros_like(l_surface)
     if options.specular_deg > 0:
@@ -477,6 +606,16 @@ def render(
             raise ValueError(f"observation_filter: band transmissions {transmission.round(4).tolist()}; allowed values in [0, 1]")
         surface, fluor, spec = (a * transmission[:, None, None] for a in (surface, fluor, spec))
     trunc = np.exp(-np.asarray(mua + mus)[0] * options.steps * dx)
+    replayed = None
+    if replay:
+        from ..replay import RecordReplay
+
+        traced_tissue = jax.tree.map(np.asarray, tissue)
+        rep = lambda r: None if r is None or r.count == 0 else RecordReplay(r, traced_tissue)  # noqa: E731
+        replayed = RenderReplay(surface=rep(surf), arrivals=rep(arrivals) if vmap_arr is not None else None,
+                                emissions=rep(emissions) if vmap_em is not None else None,
+                                maps=(smap, vmap_arr, vmap_em), shading=shading, specular=jnp.asarray(spec),
+                                transmission=jnp.asarray(transmission), hit=jnp.asarray(np.asarray(hit).reshape(h, w)))
     return RenderResult(
         stack=surface + fluor + spec, surface=surface, fluorescence=fluor, specular=spec,
         wavelengths=tissue.bands.wavelengths, covered=(np.asarray(count) > 0).reshape(h, w) & np.asarray(hit).reshape(h, w),
@@ -489,4 +628,5 @@ def render(
         photons=kept, launched_fraction=fraction, timings=timings, filter_transmission=transmission,
         trace=dataclasses.replace(traced, surface_records=None, volume_records=None),
         records=(surf, arrivals, emissions) if keep_records else None,
+        replay=replayed,
     )

@@ -61,6 +61,9 @@ class _Acc(NamedTuple):
     a_layer: Array | None
     rd_path: Array | None  # [3, layers]: sums of w*L, w*k, w*score over reflected photons
     tt_path: Array | None
+    rd_r_path: Array | None  # [nr, 3, layers]: the same per radial bin (path_stats and rd_r)
+    a_z_path: Array | None  # [nz, 4, layers]: sums of dep*L, dep*k, dep*score, (w/mut)*onehot per depth bin
+    a_layer_path: Array | None  # [layers, 4, layers]: the same per absorbing layer
 
 
 class _Medium(NamedTuple):
@@ -87,6 +90,9 @@ def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
         return jnp.zeros(shape, f64) if tallies.wants(name) else None
 
     path = jnp.zeros((3, layers), f64) if options.path_stats else None
+
+    def jac(name, bins, stats):
+        return jnp.zeros((bins, stats, layers), f64) if options.path_stats and tallies.wants(name) else None
     return _Acc(
         next_pid=jnp.zeros((), jnp.int64),
         rsp=jnp.zeros((), f64),
@@ -103,6 +109,9 @@ def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
         a_layer=maybe("a_layer", (layers,)),
         rd_path=path,
         tt_path=path,
+        rd_r_path=jac("rd_r", tallies.nr, 3),
+        a_z_path=jac("a_z", tallies.nz, 4),
+        a_layer_path=jac("a_layer", layers, 4),
     )
 
 
@@ -161,6 +170,8 @@ def _harvest(lanes: _Lanes, acc: _Acc, tallies: TallySpec) -> tuple[_Lanes, _Acc
         stats = jnp.stack([lanes.path_len, lanes.scatters, lanes.score]).astype(f64)  # [3, lanes, layers]
         upd["rd_path"] = acc.rd_path + jnp.einsum("l,slk->sk", top, stats)
         upd["tt_path"] = acc.tt_path + jnp.einsum("l,slk->sk", bottom, stats)
+        if acc.rd_r_path is not None:
+            upd["rd_r_path"] = acc.rd_r_path.at[ir].add(top[:, None, None] * jnp.moveaxis(stats, 0, 1))
     lanes = lanes._replace(status=jnp.where(done, IDLE, lanes.status))
     return lanes, acc._replace(**upd)
 
@@ -366,14 +377,29 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
         upd["scatters"] = lanes.scatters + onehot * interact.astype(dtype)[:, None]
         score = jnp.where(interact, phys.hg_score(g, cos_s), 0.0)
         upd["score"] = lanes.score + onehot * score[:, None]
+    before = lanes  # the photon arriving at this step (deposit statistics read it)
     new = lanes._replace(**upd)
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(alive, a), a, b), new, lanes)
 
     # absorption tallies resolved in space are accumulated where the weight is dropped
     deposit = jnp.where(interact, dw, 0.0).astype(jnp.float64)
     acc_upd = {}
-    if acc.a_z is not None or acc.a_rz is not None:
+    deposit_stats = None
+    if acc.a_z_path is not None or acc.a_layer_path is not None:
+        # The deposit w mua/mut at the j-th interaction, as a function of the parameters, is
+        # deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0 (DESIGN.md §5):
+        # its derivatives need L (this hop included), the scatterings before it, their HG score,
+        # and deposit/mua = w/mut (finite at mua = 0) for the mua of the layer it happens in.
+        f64 = jnp.float64
+        per_w = jnp.where(interact, before.w / safe_mut, 0.0).astype(f64)
+        deposit_stats = jnp.stack([
+            deposit[:, None] * upd["path_len"].astype(f64), deposit[:, None] * before.scatters.astype(f64),
+            deposit[:, None] * before.score.astype(f64), per_w[:, None] * onehot.astype(f64),
+        ], axis=1)  # [lanes, 4, layers]
+    if acc.a_z is not None or acc.a_rz is not None or acc.a_z_path is not None:
         iz = _bin(_pick(medium.z0, layer) + z, tallies.dz, tallies.nz)
+        if acc.a_z_path is not None:
+            acc_upd["a_z_path"] = acc.a_z_path.at[iz].add(deposit_stats)
         if acc.a_z is not None:
             acc_upd["a_z"] = acc.a_z.at[iz].add(deposit)
         if acc.a_rz is not None:
@@ -381,4 +407,6 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
             acc_upd["a_rz"] = acc.a_rz.at[ir, iz].add(deposit)
     if acc.a_layer is not None:
         acc_upd["a_layer"] = acc.a_layer.at[layer].add(deposit)
+    if acc.a_layer_path is not None:
+        acc_upd["a_layer_path"] = acc.a_layer_path.at[layer].add(deposit_stats)
     return lanes, acc._replace(**acc_upd)

@@ -42,6 +42,11 @@ class RecordSpec(eqx.Module):
     - `volume_all`: record interactions of non-converted photons too (default: converted only).
     - `emission`: record every conversion point as an emission record in the volume buffer
       (default off; the renderer turns it on).
+    - `replay`: records carry what replaying them at other parameters needs (`tissuefit.replay`):
+      the Henyey–Greenstein score per medium and, for converted photons, the statistics of the
+      excitation segment before their conversion (path, hits, score, band, medium). Fluorescent
+      scenes are then traced per band (shared paths do not keep a converted photon's excitation
+      spectrum). Default off.
     The paper keeps 300 000 of each. Records are off unless a consumer asks for them.
     """
 
@@ -49,6 +54,7 @@ class RecordSpec(eqx.Module):
     volume: int = eqx.field(static=True, default=0)
     volume_all: bool = eqx.field(static=True, default=False)
     emission: bool = eqx.field(static=True, default=False)
+    replay: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         for name in ("surface", "volume"):
@@ -57,7 +63,7 @@ class RecordSpec(eqx.Module):
                 raise ValueError(f"records.{name} = {value!r}; allowed an integer in [0, 2^31 - 1] (buffer capacity, records)")
             if value:
                 check_positive_int(f"records.{name}", value, high=2**31 - 1)
-        for name in ("volume_all", "emission"):
+        for name in ("volume_all", "emission", "replay"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"records.{name} = {getattr(self, name)!r} must be True or False")
 
@@ -80,6 +86,12 @@ class PhotonRecords(eqx.Module):
     - `path` [capacity, media] cm and `hits` [capacity, media]: path length and scattering
       interactions per medium since launch or the last conversion (see the module docstring).
     - `count`: valid rows; `overflow`: records dropped because the buffer was full.
+    With `RecordSpec.replay` (else None): `score` [capacity, media], the sum of d log p_HG/dg over
+    the segment's scatterings per medium; for converted records the excitation segment before the
+    last conversion: `path0`, `hits0`, `score0` [capacity, media], its band `band0`, the medium
+    `conv_medium` the conversion happened in, and `conversions`, how many conversions the photon
+    made (a record with more than one has an excitation history older than `path0`; see
+    `tissuefit.replay`).
     """
 
     position: Float[Array, "capacity 3"]
@@ -93,6 +105,13 @@ class PhotonRecords(eqx.Module):
     emission: Bool[Array, " capacity"] | None = None
     path: Float[Array, "capacity media"] | None = None
     hits: Float[Array, "capacity media"] | None = None
+    score: Float[Array, "capacity media"] | None = None
+    path0: Float[Array, "capacity media"] | None = None
+    hits0: Float[Array, "capacity media"] | None = None
+    score0: Float[Array, "capacity media"] | None = None
+    band0: Int[Array, " capacity"] | None = None
+    conv_medium: Int[Array, " capacity"] | None = None
+    conversions: Int[Array, " capacity"] | None = None
 
     @property
     def capacity(self) -> int:
@@ -113,4 +132,9 @@ class PhotonRecords(eqx.Module):
             band=cut(self.band), converted=cut(self.converted), photon=cut(self.photon),
             count=int(mask.sum()), overflow=int(self.overflow),
             emission=cut(self.emission), path=cut(self.path), hits=cut(self.hits),
+            **{k: cut(getattr(self, k)) for k in REPLAY_FIELDS},
         )
+
+
+REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")
+"""Record fields kept with `RecordSpec.replay` (None otherwise)."""

@@ -42,8 +42,9 @@ class TraceResult(eqx.Module):
     `budget_exhausted` True when `max_steps` stopped the run early (tallies then incomplete).
     - `roulette` [-]: net weight created by Russian roulette per photon (zero-mean); exactly,
       `rsp + rd + a + tt - roulette = 1` up to float64 rounding.
-    - `path_stats`: weighted path statistics of escaping photons when `TraceOptions.path_stats`
-      (see `PathStats`), which give the likelihood-ratio derivatives of rd and tt.
+    - `path_stats`: weighted path statistics when `TraceOptions.path_stats` (see `PathStats`),
+      which give the likelihood-ratio derivatives of rd, tt, a, and of rd_r, a_z and a_layer when
+      tallied: `jacobian(name)`. `tissuefit.replay.tallies` makes them JAX-differentiable.
     """
 
     photons: int = eqx.field(static=True)
@@ -86,6 +87,17 @@ class TraceResult(eqx.Module):
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(mua > 0, np.asarray(self.a_rz) / np.where(mua > 0, mua, 1.0)[None, :], np.nan)
 
+    def jacobian(self, name: str) -> dict:
+        """d (tally `name`) / d (mua, mus, g) per layer, from the path statistics: a dict of arrays
+        [*tally shape, layers] in the tally's units per 1/cm (mua, mus) or per unit g.
+        `name` in "rd", "tt", "a", "rd_r", "a_z", "a_layer" (the last three when tallied)."""
+        if self.path_stats is None:
+            raise ValueError("jacobian: the trace kept no path statistics; trace with TraceOptions(path_stats=True)")
+        out = self.path_stats.gradient(name)
+        ring, _, _ = bin_measures(self.tallies)
+        scale = {"rd_r": ring[:, None], "a_z": np.full((self.tallies.nz, 1), self.tallies.dz)}.get(name)
+        return out if scale is None else {k: v / scale for k, v in out.items()}
+
     @property
     def r_cm(self) -> np.ndarray:
         """Radial bin centres [cm], (i + 1/2) dr as MCML places them."""
@@ -103,30 +115,46 @@ class TraceResult(eqx.Module):
 
 
 class PathStats(eqx.Module):
-    """Weighted path statistics of escaping photons, per layer, normalised per launched photon.
+    """Weighted path statistics, normalised per launched photon: the likelihood-ratio (perturbation
+    Monte Carlo) derivatives of the tallies at the traced parameters (DESIGN.md §5).
 
-    `rd[0, l]` = sum over reflected photons of w * (path length in layer l) / N [cm];
+    Escaping light: `rd[0, l]` = sum over reflected photons of w * (path length in layer l) / N [cm];
     `rd[1, l]` = sum of w * (interactions in layer l) / N; `rd[2, l]` = sum of
-    w * (sum over its scatterings in l of d log p_HG / dg) / N. `tt` likewise for transmitted photons.
+    w * (sum over its scatterings in l of d log p_HG / dg) / N. `tt` likewise for transmitted photons,
+    `rd_r` [nr, 3, layers] per radial bin (when `rd_r` is tallied; units of rd_r times cm or 1).
 
-    For a recorded path the contribution is W = W0 (mus/mus0)^k exp(-(mut - mut0) L) prod p_g/p_g0
-    (DESIGN.md §5), so the perturbation Monte Carlo derivatives at the traced parameters are
+    Absorbed light (when `a_z` / `a_layer` are tallied): `a_z` [nz, 4, layers] and `a_layer`
+    [layers, 4, layers] hold, per bin, the sums of deposit * L_l, deposit * k_l (scatterings before
+    the deposit), deposit * score_l, and (arriving weight / mut) * [deposit in layer l], since a
+    deposit at the j-th interaction is deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0.
+
+    For an escaping contribution W = W0 (mus/mus0)^k exp(-(mut - mut0) L) prod p_g/p_g0, so
     d rd / d mua_l = -rd[0, l], d rd / d mus_l = rd[1, l]/mus_l - rd[0, l], d rd / d g_l = rd[2, l].
-    They are unbiased except for roulette's weight threshold, whose decision depends on parameters
-    (a negligible effect at MCML's 1e-4 threshold).
+    Unbiased except for roulette's weight threshold, whose decision depends on the parameters (a
+    negligible effect at MCML's 1e-4 threshold). Where mus_l = 0 (glass) the mus derivative counts
+    the loss of unscattered light only: paths that would scatter there have zero density and are
+    never sampled.
     """
 
     rd: Float[Array, "3 layers"]
     tt: Float[Array, "3 layers"]
     mus: Float[Array, " layers"]
+    rd_r: Float[Array, "nr 3 layers"] | None = None
+    a_z: Float[Array, "nz 4 layers"] | None = None
+    a_layer: Float[Array, "layers 4 layers"] | None = None
 
     def _grads(self, stats):
-        safe = np.where(self.mus > 0, self.mus, 1.0)
-        return {
-            "mua": -stats[0],
-            "mus": np.where(self.mus > 0, stats[1] / safe, 0.0) - stats[0],
-            "g": stats[2],
+        stats = np.asarray(stats)
+        mus = np.asarray(self.mus)
+        safe = np.where(mus > 0, mus, 1.0)
+        out = {
+            "mua": -stats[..., 0, :],
+            "mus": np.where(mus > 0, stats[..., 1, :] / safe, 0.0) - stats[..., 0, :],
+            "g": stats[..., 2, :],
         }
+        if stats.shape[-2] == 4:  # absorbed: the deposit's own mua/mua0 factor
+            out["mua"] = out["mua"] + stats[..., 3, :]
+        return out
 
     def rd_gradient(self) -> dict:
         """d rd / d (mua, mus, g) per layer [cm, cm, -] from the likelihood ratio."""
@@ -135,3 +163,23 @@ class PathStats(eqx.Module):
     def tt_gradient(self) -> dict:
         """d tt / d (mua, mus, g) per layer [cm, cm, -] from the likelihood ratio."""
         return self._grads(self.tt)
+
+    def gradient(self, name: str) -> dict:
+        """d (tally `name`) / d (mua, mus, g): arrays [*tally shape, layers] in the tally's units
+        per 1/cm (mua, mus) or per unit g. `name`: "rd", "tt", "a" (total absorbed, from the balance
+        a = 1 - rsp - rd - tt), or "rd_r", "a_z", "a_layer" when tallied (raw per-bin sums here;
+        `TraceResult.jacobian` divides by the bin sizes)."""
+        if name == "rd":
+            return self.rd_gradient()
+        if name == "tt":
+            return self.tt_gradient()
+        if name == "a":
+            rd, tt = self.rd_gradient(), self.tt_gradient()
+            return {k: -(rd[k] + tt[k]) for k in rd}
+        stats = {"rd_r": self.rd_r, "a_z": self.a_z, "a_layer": self.a_layer}.get(name)
+        if stats is None:
+            raise ValueError(
+                f"gradient: no path statistics for {name!r}; available with TraceOptions(path_stats=True): "
+                "'rd', 'tt', 'a', and 'rd_r', 'a_z', 'a_layer' when they are in TallySpec.names"
+            )
+        return self._grads(stats)

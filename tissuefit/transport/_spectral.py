@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 from .._checks import check_positive_int, check_range, is_concrete
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
-from ._records import PhotonRecords, RecordSpec
+from ._records import REPLAY_FIELDS, PhotonRecords, RecordSpec
 from ._spectral_lanes import harvest, refill, step
 from ._spectral_state import SpectralConfig, idle_lanes, medium_arrays, zeros_acc
 from ._spectral_weights import band_weights
@@ -146,6 +146,12 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
     props = _active_properties(scene, active)
     mode = spectral.mode
     voxels = any(r.num_media > 1 for r in scene.tissue.regions)
+    replay_fluor = records.replay and records.any and scene.tissue.fluorescent
+    if mode == "shared" and replay_fluor:
+        raise ValueError("records.replay with fluorescence: shared paths do not keep a converted photon's "
+                         "excitation spectrum; use spectral.mode 'per_band' or 'auto'")
+    if mode == "auto" and replay_fluor:
+        mode = "per_band"  # replaying conversions needs each photon's excitation band and segment
     if mode == "auto":
         # Shared paths whenever they can serve the scene: measured 4-11x more efficient per band
         # than per-band tracing even for blood spectra (mut differing by 67 % across bands;
@@ -261,6 +267,8 @@ def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) ->
         power=power, band=band, converted=take(buf.converted), photon=take(buf.photon),
         count=count, overflow=int(np.sum(buf.overflow)), emission=take(buf.emission),
         path=take(buf.path).astype(np.float64), hits=take(buf.hits).astype(np.float64),
+        **{k: (lambda a: None if a is None else (a.astype(np.float64) if a.dtype.kind == "f" else a))(take(getattr(buf, k)))
+           for k in REPLAY_FIELDS},
     )
 
 

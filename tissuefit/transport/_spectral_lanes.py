@@ -72,7 +72,9 @@ def _append(buf: _Buffer, mask: Array, **rows) -> _Buffer:
 def _record_rows(lanes: _Lanes, position, direction, band, emission=False) -> dict:
     return dict(position=position, direction=direction, w=lanes.w, spectrum=lanes.spectrum, path=lanes.path,
                 hits=lanes.hits, band=band, converted=lanes.converted, photon=lanes.pid,
-                emission=jnp.full(lanes.w.shape, emission))
+                emission=jnp.full(lanes.w.shape, emission), score=lanes.score, path0=lanes.path0,
+                hits0=lanes.hits0, score0=lanes.score0, band0=lanes.band0, conv_medium=lanes.conv_medium,
+                conversions=lanes.conversions)
 
 
 def _medium_at(tissue, layer: Array, x, y, zabs, u) -> Array:
@@ -127,6 +129,8 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         spectrum=jnp.broadcast_to(power / jnp.max(power), lanes.spectrum.shape) if shared else None,
         path=None if lanes.path is None else jnp.zeros_like(lanes.path),
         hits=None if lanes.hits is None else jnp.zeros_like(lanes.hits),
+        **{k: None if getattr(lanes, k) is None else jnp.zeros_like(getattr(lanes, k))
+           for k in ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")},
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
@@ -266,6 +270,24 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
 
     ix, iy, iz = _isotropic(xi_a, xi_b)
     cos_s = phys.sample_hg_cos(g_c, xi_a)
+    replay = {}
+    if config.replay:
+        # HG score of this scattering (DESIGN.md §5): the g factor of the replayed weight
+        scatter = onehot & (interact & ~convert)[:, None]
+        score_in = lanes.score
+        score = lanes.score + jnp.where(scatter, phys.hg_score(g_c, cos_s)[:, None], 0.0)
+        if config.history:
+            # a conversion closes the excitation segment: keep it (the replay needs its band's
+            # weight ratio) and start the emission segment's statistics from zero
+            c2 = convert[:, None]
+            replay = dict(
+                path0=jnp.where(c2, path_in, lanes.path0), hits0=jnp.where(c2, lanes.hits, lanes.hits0),
+                score0=jnp.where(c2, score, lanes.score0), band0=jnp.where(convert, lanes.band, lanes.band0),
+                conv_medium=jnp.where(convert, med, lanes.conv_medium).astype(jnp.int32),
+                conversions=lanes.conversions + convert.astype(jnp.int32),
+            )
+            score = jnp.where(c2, 0.0, score)
+        replay["score"] = score
     sx, sy, sz = phys.spin(lanes.ux, lanes.uy, uz, cos_s, xi_b)
     # a face reflects or refracts; a region boundary leaves the direction as it is
     ux = jnp.where(hit_face, bx, jnp.where(hit_reg, lanes.ux, jnp.where(convert, ix, sx)))
@@ -303,15 +325,18 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     # The per-band arrays of shared paths change only where a live lane moved or converted (their
     # updates are masked already): merging them lane by lane again would cost slots x lanes per step.
     out_lanes = out_lanes._replace(spectrum=spectrum, path=path, hits=hits)
+    if replay:
+        out_lanes = out_lanes._replace(**{k: jnp.where(_expand(live, v), v, getattr(lanes, k)) for k, v in replay.items()})
     if acc.volume is not None:
         # the photon as it arrives at the interaction (its weight, spectrum and path statistics)
-        arriving = lanes._replace(path=path_in)
+        arriving = lanes._replace(path=path_in, score=score_in if config.replay else None)
         here = jnp.stack([x, y, _pick(medium.z0, layer) + z], -1)
         rec = interact & (lanes.converted | config.records.volume_all)
         volume = _append(acc.volume, rec, **_record_rows(arriving, here, jnp.stack([lanes.ux, lanes.uy, uz], -1), lanes.band))
         if config.fluorescent and config.records.emission:
             # the photon as it leaves a conversion point: emitted weight (spectrum), fresh path
-            leaving = lanes._replace(w=w_emitted, spectrum=spectrum, path=path, hits=hits, converted=jnp.ones_like(converted))
+            leaving = lanes._replace(w=w_emitted, spectrum=spectrum, path=path, hits=hits, converted=jnp.ones_like(converted),
+                                     **replay)
             volume = jax.lax.cond(
                 jnp.any(convert),
                 lambda v: _append(v, convert, **_record_rows(leaving, here, jnp.stack([ix, iy, iz], -1), new_band, True)),

@@ -36,6 +36,16 @@ class SpectralConfig(eqx.Module):
         return len(self.active)
 
     @property
+    def replay(self) -> bool:
+        """Lanes carry HG scores (and, fluorescent per band, the excitation segment) for replay."""
+        return self.records.replay and self.records.any
+
+    @property
+    def history(self) -> bool:
+        """Lanes keep the excitation segment of their last conversion (replay, per band, fluorescent)."""
+        return self.replay and self.fluorescent and not self.shared
+
+    @property
     def track_path(self) -> bool:
         """Lanes carry path statistics (L, n per medium): shared paths need them for their band
         weights; per-band photons carry them only when records are kept (records report them)."""
@@ -53,6 +63,13 @@ class _Lanes(NamedTuple):
     spectrum: Array | None  # shared: s [lanes, slots]
     path: Array | None  # track_path: L [lanes, media] since launch or the last conversion [cm]
     hits: Array | None  # track_path: n [lanes, media] since launch or the last conversion
+    score: Array | None  # replay: sum of d log p_HG / dg [lanes, media] over the segment's scatterings
+    path0: Array | None  # history: the excitation segment before the last conversion [lanes, media]
+    hits0: Array | None
+    score0: Array | None
+    band0: Array | None  # history: the band of that segment
+    conv_medium: Array | None  # history: the medium of the last conversion
+    conversions: Array | None  # history: conversions so far
     sleft: Array
     layer: Array
     medium: Array
@@ -73,6 +90,13 @@ class _Buffer(NamedTuple):
     spectrum: Array | None  # [cap, slots]
     path: Array | None  # [cap, media]
     hits: Array | None
+    score: Array | None
+    path0: Array | None
+    hits0: Array | None
+    score0: Array | None
+    band0: Array | None
+    conv_medium: Array | None
+    conversions: Array | None
     band: Array
     converted: Array
     emission: Array  # [cap] bool: a conversion point (isotropic emission), not an arrival
@@ -160,6 +184,13 @@ def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
     )
 
 
+def _replay_fields(n: int, config: SpectralConfig, dtype) -> dict:
+    per_medium = lambda on: jnp.zeros((n, config.num_media), dtype) if on else None  # noqa: E731
+    index = lambda: jnp.zeros(n, jnp.int32) if config.history else None  # noqa: E731
+    return dict(score=per_medium(config.replay), path0=per_medium(config.history), hits0=per_medium(config.history),
+                score0=per_medium(config.history), band0=index(), conv_medium=index(), conversions=index())
+
+
 def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:
     shared = config.shared
     return _Buffer(
@@ -168,6 +199,7 @@ def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:
         spectrum=jnp.zeros((capacity, config.slots), dtype) if shared else None,
         path=jnp.zeros((capacity, config.num_media), dtype) if config.track_path else None,
         hits=jnp.zeros((capacity, config.num_media), dtype) if config.track_path else None,
+        **_replay_fields(capacity, config, dtype),
         band=jnp.zeros(capacity, jnp.int32), converted=jnp.zeros(capacity, bool), emission=jnp.zeros(capacity, bool),
         photon=jnp.zeros(capacity, jnp.int64), count=jnp.zeros((), jnp.int64), overflow=jnp.zeros((), jnp.int64),
     )
@@ -198,7 +230,7 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
     return _Lanes(
         x=zf, y=zf, z=zf, ux=zf, uy=zf, uz=zf, w=zf,
         spectrum=jnp.zeros((lanes, config.slots), dtype) if shared else None,
-        path=per_medium(), hits=per_medium(), sleft=zf,
+        path=per_medium(), hits=per_medium(), **_replay_fields(lanes, config, dtype), sleft=zf,
         layer=zi, medium=zi, band=zi, converted=jnp.zeros(lanes, bool),
         status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
         heat=zf, roulette=zf, steps=zi,

@@ -1,0 +1,106 @@
+"""Image gradients (`render(..., replay=True)` -> `RenderReplay`): the replayed stack is the render,
+selected pixels' derivatives match finite differences of independent renders, modes agree, and
+pixels no photon reached stay finite."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tissuefit as tf
+from tissuefit import render as rd
+
+K = 4.0  # standard errors (two bands x two parameters, standard errors from few renders)
+BANDS = tf.BandGrid([450.0, 640.0], 16.0)
+ENDO = rd.Endoscope(beta_deg=15.0, fov_deg=16.0, width=8, height=8, distance=1.0)
+OPTIONS = rd.RenderOptions(specular_deg=2.0, surface_radius=0.04, volume_radius=0.04)
+
+
+def tissue(p):
+    mua, mus = p
+    optics = tf.LayerOptics([tf.ConstantAbsorption(jnp.stack([mua, 0.5 * mua]))], tf.ConstantScattering(jnp.stack([mus, 0.8 * mus]), 0.85))
+    return tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=BANDS)
+
+
+P0 = jnp.asarray([2.0, 80.0])
+BLOCK = (slice(None), slice(2, 6), slice(2, 6))  # the central 4 x 4 pixels of each band
+
+
+def block(stack):
+    return stack[BLOCK].mean((1, 2))
+
+
+def render(p, seed, replay=False):
+    return rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(seed), options=OPTIONS,
+                     illumination=rd.Floodlight(0.6), replay=replay)
+
+
+def test_replayed_stack_is_the_render_and_modes_agree():
+    got = render(P0, 0, replay=True)
+    rep = got.replay
+    np.testing.assert_allclose(np.asarray(rep.stack(tissue(P0))), got.stack, rtol=1e-6, atol=1e-9 * got.stack.max())
+    f = lambda p: block(rep.stack(tissue(p)))  # noqa: E731
+    jf, jr = np.asarray(jax.jacfwd(f)(P0)), np.asarray(jax.jacrev(f)(P0))
+    np.testing.assert_allclose(jf, jr, rtol=1e-6, atol=1e-14)  # float32 maps
+    assert jf[0, 0] < 0 and jf[1, 0] < 0  # more absorption, darker in both bands
+    ess = rep.effective_sample_size(tissue(P0 * 1.1))
+    assert 0 < float(ess["surface"][0]) < 1
+
+
+@pytest.mark.slow  # 12 renders, ~100 s on 2 cores
+def test_pixel_gradients_match_finite_differences_of_independent_renders():
+    rows = []
+    for s in range(4):
+        rep = render(P0, s, replay=True).replay
+        rows.append(np.asarray(jax.jacfwd(lambda p: block(rep.stack(tissue(p))))(P0)))  # [bands, 2]
+    rows = np.array(rows)
+    got, e_got = rows.mean(0), rows.std(0, ddof=1) / 2.0
+    for i, h in ((0, 0.5), (1, 20.0)):
+        sides = []
+        for sign in (1, -1):
+            vals = np.array([block(render(P0.at[i].add(sign * h), 100 + 10 * sign + s).stack) for s in range(4)])
+            sides.append((vals.mean(0), vals.std(0, ddof=1) / 2.0))
+        fd = (sides[0][0] - sides[1][0]) / (2 * h)
+        e_fd = np.hypot(sides[0][1], sides[1][1]) / (2 * h)
+        z = (got[:, i] - fd) / np.hypot(e_got[:, i], e_fd)
+        assert np.all(np.abs(z) <= K), (i, got[:, i], fd, z)
+        assert np.all(np.abs(fd) > 3 * e_fd), (i, fd, e_fd)  # resolved
+
+
+def test_pixels_no_photon_reached_have_finite_zero_gradients():
+    """A narrow beam leaves most of a wide view dark: those pixels' values and derivatives are 0."""
+    wide = rd.Endoscope(beta_deg=0.0, fov_deg=100.0, width=8, height=8, distance=1.0)
+    got = rd.render(tissue(P0), wide, photons=3000, key=jax.random.key(1), options=OPTIONS,
+                    illumination=rd.Floodlight(0.05), replay=True)
+    dark = ~got.covered
+    assert dark.sum() > 10
+    jac = np.asarray(jax.jacfwd(lambda p: got.replay.stack(tissue(p)))(P0))  # [bands, H, W, 2]
+    assert np.all(np.isfinite(jac))
+    assert np.all(jac[:, dark] == 0)
+
+
+@pytest.mark.slow
+def test_fluorescence_image_gradient_in_the_concentration():
+    """Violet light on PpIX tissue: d(red pixels)/d c from the replayed render vs finite differences."""
+    bands = tf.BandGrid([400.0, 640.0], 16.0)
+
+    def fl_tissue(c):
+        optics = tf.LayerOptics([tf.ConstantAbsorption(2.0), tf.protoporphyrin_ix(bands, c=c)], tf.ConstantScattering(100.0, 0.8))
+        return tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=bands)
+
+    def red(c, seed, replay=False):
+        return rd.render(fl_tissue(c), ENDO, spectrum=tf.BoxcarSpectrum(392.0, 408.0), photons=40_000,
+                         key=jax.random.key(seed), options=OPTIONS, illumination=rd.Floodlight(0.6), replay=replay)
+
+    rows = []
+    for s in range(4):
+        rep = red(10.0, s, replay=True).replay
+        rows.append(float(jax.grad(lambda c: block(rep.stack(fl_tissue(c)))[1])(jnp.asarray(10.0))))
+    got, e_got = np.mean(rows), np.std(rows, ddof=1) / 2.0
+    sides = [np.array([block(red(10.0 + sign * 3.0, 200 + 10 * sign + s).stack)[1] for s in range(4)]) for sign in (1, -1)]
+    fd = (sides[0].mean() - sides[1].mean()) / 6.0
+    e_fd = math.hypot(sides[0].std(ddof=1) / 2, sides[1].std(ddof=1) / 2) / 6.0
+    assert abs(fd) > 3 * e_fd
+    assert abs(got - fd) <= K * math.hypot(e_got, e_fd), (got, e_got, fd, e_fd)

@@ -1,0 +1,27 @@
+"""Gradients and reweighting by path replay (likelihood ratio / perturbation Monte Carlo; DESIGN.md §5).
+
+Trace once at the current parameters, keep each contribution's path statistics, and write the
+tallies, records and images as explicit JAX functions of the parameters, with every sampled
+distance and direction held fixed:
+
+- `tallies(scene, ...)`: single-band tallies (rd, tt, a, rd_r, a_z, a_layer) differentiable in
+  the layers' mua, mus, g (detached form T0 + J (theta - stop_gradient(theta))).
+- `trace_records(scene, ...)` -> `EscapeReplay`: a spectral trace whose escaping photons are all
+  replayable: rd and escaping fluorescence per band at any nearby tissue, exactly in mua, mus,
+  concentrations and spectral-model coefficients, to first order in g; effective sample size.
+- `RecordReplay(records, traced)`: any records traced with `RecordSpec(replay=True)` (the
+  renderer's maps use it: `tissuefit.render.render(..., replay=True)`).
+
+Not differentiable: refractive indices, thicknesses, region geometry and the source (they move
+boundaries; the likelihood ratio has no boundary terms). Differentiating them raises an error.
+"""
+
+from ._records import RecordReplay as RecordReplay, segment_log_ratio as segment_log_ratio
+from ._tallies import (
+    DIFFERENTIABLE as DIFFERENTIABLE,
+    NOT_DIFFERENTIABLE as NOT_DIFFERENTIABLE,
+    EscapeReplay as EscapeReplay,
+    layered as layered,
+    tallies as tallies,
+    trace_records as trace_records,
+)
