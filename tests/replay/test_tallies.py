@@ -139,3 +139,15 @@ def test_geometry_and_jit_are_refused_with_a_clear_error():
         replay.tallies(tf.Scene(tissue()), key=jax.random.key(0), photons=100, tallies=tf.TallySpec(names=("tt_r",)))
     with pytest.raises(ValueError, match="trace with TraceOptions\\(path_stats=True\\)"):
         tf.trace(tf.Scene(tissue()), key=jax.random.key(0), photons=100).jacobian("rd")
+
+
+def test_batched_jacobian_equals_jacfwd():
+    f = lambda x: jnp.stack([jnp.sin(x[0]) * x[1], x[2] ** 3, x[0] * x[1] * x[2]])  # noqa: E731
+    x = jnp.asarray([0.3, 1.5, -2.0])
+    want = np.asarray(jax.jacfwd(f)(x))
+    for batch in (None, 1, 2, 3):
+        np.testing.assert_allclose(np.asarray(replay.jacobian(f, x, batch=batch)), want, rtol=1e-14)
+    with pytest.raises(ValueError, match="jacobian batch"):
+        replay.jacobian(f, x, batch=0)
+    with pytest.raises(ValueError, match="1-d array"):
+        replay.jacobian(f, x[None, :])

@@ -11,11 +11,14 @@ distance and direction held fixed:
   concentrations and spectral-model coefficients, to first order in g; effective sample size.
 - `RecordReplay(records, traced)`: any records traced with `RecordSpec(replay=True)` (the
   renderer's maps use it: `tissuefit.render.render(..., replay=True)`).
+- `jacobian(f, x, batch=k)`: forward-mode Jacobian in batches of k directions (an image Jacobian's
+  memory grows with the directions pushed at once).
 
 Not differentiable: refractive indices, thicknesses, region geometry and the source (they move
 boundaries; the likelihood ratio has no boundary terms). Differentiating them raises an error.
 """
 
+from ._jacobian import jacobian as jacobian
 from ._records import RecordReplay as RecordReplay, segment_log_ratio as segment_log_ratio
 from ._tallies import (
     DIFFERENTIABLE as DIFFERENTIABLE,

@@ -61,6 +61,8 @@ class _Acc(NamedTuple):
     a_layer: Array | None
     rd_path: Array | None  # [3, layers]: sums of w*L, w*k, w*score over reflected photons
     tt_path: Array | None
+    rd_path2: Array | None  # [3, layers]: sums of squares of the per-photon terms (standard errors)
+    tt_path2: Array | None
     rd_r_path: Array | None  # [nr, 3, layers]: the same per radial bin (path_stats and rd_r)
     a_z_path: Array | None  # [nz, 4, layers]: sums of dep*L, dep*k, dep*score, (w/mut)*onehot per depth bin
     a_layer_path: Array | None  # [layers, 4, layers]: the same per absorbing layer
@@ -109,6 +111,8 @@ def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
         a_layer=maybe("a_layer", (layers,)),
         rd_path=path,
         tt_path=path,
+        rd_path2=path,
+        tt_path2=path,
         rd_r_path=jac("rd_r", tallies.nr, 3),
         a_z_path=jac("a_z", tallies.nz, 4),
         a_layer_path=jac("a_layer", layers, 4),
@@ -170,6 +174,8 @@ def _harvest(lanes: _Lanes, acc: _Acc, tallies: TallySpec) -> tuple[_Lanes, _Acc
         stats = jnp.stack([lanes.path_len, lanes.scatters, lanes.score]).astype(f64)  # [3, lanes, layers]
         upd["rd_path"] = acc.rd_path + jnp.einsum("l,slk->sk", top, stats)
         upd["tt_path"] = acc.tt_path + jnp.einsum("l,slk->sk", bottom, stats)
+        upd["rd_path2"] = acc.rd_path2 + jnp.einsum("l,slk->sk", top * top, stats * stats)
+        upd["tt_path2"] = acc.tt_path2 + jnp.einsum("l,slk->sk", bottom * bottom, stats * stats)
         if acc.rd_r_path is not None:
             upd["rd_r_path"] = acc.rd_r_path.at[ir].add(top[:, None, None] * jnp.moveaxis(stats, 0, 1))
     lanes = lanes._replace(status=jnp.where(done, IDLE, lanes.status))

@@ -142,6 +142,9 @@ class PathStats(eqx.Module):
     rd_r: Float[Array, "nr 3 layers"] | None = None
     a_z: Float[Array, "nz 4 layers"] | None = None
     a_layer: Float[Array, "layers 4 layers"] | None = None
+    rd2: Float[Array, "3 layers"] | None = None
+    tt2: Float[Array, "3 layers"] | None = None
+    photons: int = 0
 
     def _grads(self, stats):
         stats = np.asarray(stats)
@@ -155,6 +158,19 @@ class PathStats(eqx.Module):
         if stats.shape[-2] == 4:  # absorbed: the deposit's own mua/mua0 factor
             out["mua"] = out["mua"] + stats[..., 3, :]
         return out
+
+    def gradient_stderr(self, name: str) -> dict:
+        """Standard errors of d rd or d tt / d (mua, mus, g) per layer, from per-photon second moments
+        (each photon's term is w times its statistics; photons are independent)."""
+        if name not in ("rd", "tt") or self.rd2 is None:
+            raise ValueError(f"gradient_stderr: available for 'rd' and 'tt' only, not {name!r}")
+        m, m2 = (np.asarray(a) for a in ((self.rd, self.rd2) if name == "rd" else (self.tt, self.tt2)))
+        n = max(self.photons, 2)
+        se = np.sqrt(np.maximum(m2 - m * m, 0.0) / (n - 1))  # [3, layers]: of w L, w k, w S
+        mus = np.asarray(self.mus)
+        safe = np.where(mus > 0, mus, 1.0)
+        # the mus derivative combines w k / mus and w L of the same photons: bound by the sum
+        return {"mua": se[0], "mus": np.where(mus > 0, se[1] / safe, 0.0) + se[0], "g": se[2]}
 
     def rd_gradient(self) -> dict:
         """d rd / d (mua, mus, g) per layer [cm, cm, -] from the likelihood ratio."""
