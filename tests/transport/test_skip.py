@@ -43,3 +43,24 @@ def test_path_statistics_only_when_requested():
     assert with_stats.count("div") > plain.count("div")
     assert "dot_general" in harvest
     assert "dot_general" not in _jaxprs(())[1]
+
+
+def test_deposit_jacobians_only_with_path_statistics_and_their_tally():
+    """a_z with path statistics scatters its per-bin Jacobian sums too; without, only the tally."""
+    assert _jaxprs(("a_z",))[0].count("scatter-add") == 1
+    assert _jaxprs(("a_z",), path_stats=True)[0].count("scatter-add") == 2
+
+
+def test_replay_statistics_only_when_records_ask_for_them():
+    """Spectral lanes carry HG scores and excitation histories only with RecordSpec(replay=True)."""
+    from tissuefit.transport._spectral import resolve_config
+    from tissuefit.transport._spectral_state import idle_lanes
+
+    bands = tf.BandGrid([400.0, 640.0], 16.0)
+    optics = tf.LayerOptics([tf.ConstantAbsorption(1.0), tf.protoporphyrin_ix(bands)], tf.ConstantScattering(50.0, 0.8))
+    scene = tf.SpectralScene(tf.SpectralTissue([optics], n=[1.4], thickness=[0.1], bands=bands))
+    fields = ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")
+    for records, present in ((tf.RecordSpec(surface=10), False), (tf.RecordSpec(surface=10, replay=True), True)):
+        config = resolve_config(scene, tf.TraceOptions(), tf.SpectralOptions(), records)
+        lanes = idle_lanes(8, config, jnp.float32)
+        assert all((getattr(lanes, f) is not None) == present for f in fields), records
