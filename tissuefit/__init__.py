@@ -83,3 +83,5 @@ from .render import (  # noqa: E402
     RenderOptions as RenderOptions,
     RenderResult as RenderResult,
 )
+# `tissuefit.fit` is the function; the package's other names: `from tissuefit.fit import ...`
+from .fit import FitParameter as FitParameter, FitResult as FitResult, fit as fit  # noqa: E402

@@ -1,0 +1,106 @@
+"""`tissuefit.fit`: a synthetic measurement rendered at hidden parameters (another key, more
+photons, Gaussian noise) is fitted back from a wrong guess, within the reported uncertainties;
+transforms round-trip; bad inputs are refused with messages naming what is wrong."""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tissuefit as tf
+from tissuefit import render as rd
+from tissuefit.fit import FitParameter, parameters_from_names, scene_parameters, write_fit_plot, write_fit_report
+
+K = 3.0  # standard errors (two parameters, uncertainties themselves estimated from few renders)
+BANDS = tf.BandGrid([450.0, 640.0], 16.0)
+ENDO = rd.Endoscope(beta_deg=0.0, fov_deg=20.0, width=8, height=8, distance=1.0)
+OPTIONS = rd.RenderOptions(specular_deg=0.0, surface_radius=0.02)
+LIGHT = rd.Floodlight(0.1)
+PHOTONS, MEASURED_PHOTONS = 10_000, 50_000
+
+
+def tissue(mua, mus=80.0, g=0.85):
+    optics = tf.LayerOptics([tf.ConstantAbsorption(jnp.asarray(mua, jnp.float64))], tf.ConstantScattering(mus, g))
+    return tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=BANDS)
+
+
+MUA = FitParameter("mua", lambda t: t.layers[0].absorbers[0].mua, "log", units="1/cm")
+
+
+def test_recovers_absorption_within_the_reported_uncertainty(tmp_path):
+    truth = np.array([2.0, 1.0])
+    clean = rd.render(tissue(truth), ENDO, photons=MEASURED_PHOTONS, key=jax.random.key(99), options=OPTIONS,
+                      illumination=LIGHT).stack
+    variance = (0.02 * clean) ** 2 + (0.01 * clean.max()) ** 2
+    measured = clean + np.random.default_rng(0).normal(size=clean.shape) * np.sqrt(variance)
+    got = tf.fit(measured, tissue([3.0, 0.6]), [MUA], endoscope=ENDO, photons=PHOTONS, key=jax.random.key(1),
+                 options=OPTIONS, illumination=LIGHT, variance=variance, max_retraces=4, simulation_keys=3)
+    assert got.converged, got.reason
+    # the measurement is itself a render: its Monte Carlo noise is the fit's simulation part scaled by
+    # sqrt(photons ratio) (the noise of a render falls as 1 / sqrt(photons))
+    spread = np.hypot(got.uncertainties, got.simulation_uncertainties * math.sqrt(PHOTONS / MEASURED_PHOTONS))
+    assert np.all(np.abs(got.values - truth) <= K * spread), (got.values, spread)
+    assert np.all(got.uncertainties < 0.15 * truth)  # a fit that says something
+    assert got.residuals.shape == measured.shape and np.all(np.isfinite(got.residuals))
+    assert abs(got.correlation[0, 1]) <= 1 + 1e-9 and got.correlation[0, 0] == pytest.approx(1.0)
+    write_fit_report(got, tmp_path / "fit.json")
+    write_fit_plot(got, tmp_path / "fit.png")
+    report = json.loads((tmp_path / "fit.json").read_text())
+    assert [p["name"] for p in report["parameters"]] == ["mua[0]", "mua[1]"]
+    assert report["converged"] and len(report["history"]) == len(got.history)
+    assert len(report["bands"]) == 2 and report["bands"][0]["ssim"] is not None
+    assert (tmp_path / "fit.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("transform, bounds, values", [
+    ("log", None, [1e-3, 2.0, 400.0]), ("log", (0.5, 50.0), [0.6, 3.0, 49.0]),
+    ("logit-g", None, [0.01, 0.85, 0.98]), ("identity", (-1.0, 3.0), [-0.9, 1.3]), ("identity", None, [-5.0, 7.0]),
+])
+def test_transforms_round_trip(transform, bounds, values):
+    p = FitParameter("p", lambda t: t, transform, bounds)
+    x = p.to_unconstrained(np.asarray(values))
+    np.testing.assert_allclose(np.asarray(p.to_value(jnp.asarray(x))), values, rtol=1e-12)
+
+
+def test_bad_inputs_are_refused_with_their_reasons():
+    t = tissue([2.0, 1.0])
+    data = np.ones((2, 8, 8))
+    call = dict(endoscope=ENDO, photons=100, options=OPTIONS, illumination=LIGHT, variance=1.0)
+    with pytest.raises(ValueError, match="no parameters"):
+        tf.fit(data, t, [], **call)
+    with pytest.raises(ValueError, match="3 bands, the tissue's band grid 2"):
+        tf.fit(np.ones((3, 8, 8)), t, [MUA], **call)
+    with pytest.raises(ValueError, match="4 x 8 pixels, the endoscope's 8 x 8"):
+        tf.fit(np.ones((2, 4, 8)), t, [MUA], **call)
+    with pytest.raises(ValueError, match="no noise model"):
+        tf.fit(data, t, [MUA], **{**call, "variance": None})
+    with pytest.raises(ValueError, match="solver = 'newton'"):
+        tf.fit(data, t, [MUA], solver="newton", **call)
+    with pytest.raises(ValueError, match="all masked"):
+        tf.fit(data, t, [MUA], mask=np.zeros((2, 8, 8), bool), **call)
+    with pytest.raises(ValueError, match="outside its bounds"):
+        tf.fit(data, t, [FitParameter("mua", MUA.where, "log", (2.5, 10.0))], **call)
+    with pytest.raises(ValueError, match="names repeat"):
+        tf.fit(data, t, [MUA, MUA], **call)
+    with pytest.raises(ValueError, match="transform = 'sqrt'"):
+        FitParameter("x", MUA.where, "sqrt")
+
+
+def test_scene_parameter_names_and_their_errors():
+    optics = tf.LayerOptics([tf.ConstantAbsorption(2.0), tf.protoporphyrin_ix(BANDS)], tf.PowerLawScattering(18.9, 1.3, 0.9))
+    region = tf.Sphere(center=[0.0, 0.0, 0.05], radius=0.05, layer=0,
+                       optics=tf.LayerOptics([tf.ConstantAbsorption(1.0)], tf.ConstantScattering(50.0, 0.8)))
+    t = tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=BANDS, regions=[region])
+    names = set(scene_parameters(t))
+    assert {"layer0.mua", "layer0.c_ppix", "layer0.yield_ppix", "layer0.a", "layer0.b", "layer0.g",
+            "region0.mua", "region0.mus", "region0.g"} <= names
+    (c,) = parameters_from_names(t, ["c_ppix"])
+    assert c.name == "layer0.c_ppix" and float(c.where(t)) == pytest.approx(0.33)
+    assert parameters_from_names(t, ["a"])[0].name == "layer0.a"
+    with pytest.raises(ValueError, match="ambiguous: it names layer0.mua, region0.mua"):
+        parameters_from_names(t, ["mua"])
+    with pytest.raises(ValueError, match="not a parameter of this scene; available: layer0.mua, "):
+        parameters_from_names(t, ["mus_prime"])

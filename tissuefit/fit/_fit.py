@@ -1,0 +1,335 @@
+"""`fit(...)`: tissue parameters from a measured stack (DESIGN.md §9).
+
+Outer loop (re-traces) around an inner optimistix solve on the replayed render:
+
+1. Render at the current parameters with `replay=True` and the fit's fixed key (common random
+   numbers: every re-trace uses the same random numbers).
+2. Inner solve: the stack is `replay.stack(tissue(x))`, an explicit differentiable function of the
+   unconstrained parameters x (path reweighting of the traced records). Residuals
+   r = mask (s sim - meas) / sigma, sigma^2 = Var[meas] + s^2 Var[sim] (held fixed within a solve),
+   plus (v - mean)/sd for each Gaussian prior; solved by Levenberg–Marquardt (default),
+   Gauss–Newton or BFGS.
+3. The step is shortened until the records' effective sample size at the new point is at least
+   `ess_threshold` in every band with records, and each parameter's change within its `max_step`
+   (g: 0.03, the replay being first order in g).
+4. Stop when no parameter moved by more than `tol_sigma` of its standard error (or relative `rtol`)
+   between two re-traces; then a last render at the optimum gives the Jacobian.
+
+Uncertainties: cov_x = (J^T J)^-1 at the optimum, J = d r / d x, mapped to the parameters' units
+by the transforms' derivatives, times max(1, chi^2 / dof) (the Birge ratio: a model or noise
+model too optimistic widens the errors instead of hiding).
+
+Simulation variance: estimated at the start from two extra renders at the initial parameters with
+other keys, as a relative variance per band, median over pixels of (s1 - s2)^2 / (2 s0^2);
+Var[sim] = rel_var[band] * sim^2 at each re-trace. (Kernel estimates are correlated between nearby
+pixels, so this per-pixel term understates the simulation's effect on the parameters somewhat.)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..render import Floodlight, RenderOptions, render
+from ._parameters import FitParameter, Layout
+from ._result import FitResult
+
+SOLVERS = ("levenberg-marquardt", "gauss-newton", "bfgs")
+
+
+def _solver(name: str, rtol: float, atol: float):
+    if name == "levenberg-marquardt":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    if name == "gauss-newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol)
+    if name == "bfgs":
+        return optx.BFGS(rtol=rtol, atol=atol)
+    raise ValueError(f"fit: solver = {name!r}; allowed one of {', '.join(map(repr, SOLVERS))}")
+
+
+def _measured_arrays(measured, variance, mask):
+    """(data, variance, mask) [bands, H, W] numpy from a MeasuredStack or arrays."""
+    from ..io import MeasuredStack
+
+    if isinstance(measured, MeasuredStack):
+        data = np.asarray(measured.data, np.float64)
+        var = measured.variance if variance is None else variance
+        m = measured.mask if mask is None else (np.asarray(mask, bool) & measured.mask)
+        wl = np.asarray(measured.wavelengths, np.float64)
+    else:
+        data = np.asarray(measured, np.float64)
+        var, m, wl = variance, (np.ones(data.shape, bool) if mask is None else np.asarray(mask, bool)), None
+    if data.ndim != 3:
+        raise ValueError(f"fit: the measured stack has shape {data.shape}; expected [bands, height, width]")
+    if var is None:
+        raise ValueError("fit: the measured stack has no noise model; give variance= (units^2, [bands, H, W] or "
+                         "scalar) or a MeasuredStack read with noise (a, b)")
+    var = np.broadcast_to(np.asarray(var, np.float64), data.shape)
+    m = np.broadcast_to(m, data.shape) & np.isfinite(data) & np.isfinite(var)
+    if np.any(var[m] < 0):
+        raise ValueError("fit: the measured variance has negative entries")
+    return data, var, m, wl
+
+
+def fit(
+    measured,
+    tissue,
+    parameters,
+    *,
+    endoscope=None,
+    spectrum=None,
+    illumination=None,
+    photons: int = 100_000,
+    key=None,
+    options: RenderOptions = RenderOptions(),
+    observation_filter=None,
+    variance=None,
+    mask=None,
+    scale: bool = False,
+    solver: str = "levenberg-marquardt",
+    rtol: float = 1e-5,
+    atol: float = 1e-5,
+    inner_steps: int = 40,
+    max_retraces: int = 8,
+    ess_threshold: float = 0.5,
+    tol_sigma: float = 0.25,
+    simulation_variance: bool = True,
+    throw: bool = False,
+    simulation_keys: int = 4,
+) -> FitResult:
+    """Fit `parameters` of `tissue` so that its render matches `measured`.
+
+    - `measured`: a `tissuefit.io.MeasuredStack` (prepared: calibrated, dead bands masked,
+      registered; its `mask` and `variance` are used) or an array [bands, H, W] with `variance`.
+    - `tissue`: a `SpectralTissue`, the initial guess (its band grid must match the measured bands).
+    - `parameters`: a sequence of `FitParameter`.
+    - `endoscope`, `spectrum`, `illumination`, `photons`, `options`, `observation_filter`: as for
+      `tissuefit.render.render`; `key`: the fit's PRNG key, held fixed (common random numbers).
+    - `variance` [units^2]: Var of the measurement (overrides the stack's); `mask`: extra samples to
+      leave out ([bands, H, W] bool, True = use).
+    - `scale`: also fit a free positive scale s on the simulation (unknown absolute calibration).
+    - `solver`: "levenberg-marquardt" (default), "gauss-newton" or "bfgs"; `rtol`, `atol`,
+      `inner_steps`: the inner optimistix solve's.
+    - `max_retraces`, `ess_threshold`, `tol_sigma`: the outer loop (module docstring).
+    - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2.
+    - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
+    Returns a `FitResult`.
+    """
+    parameters = tuple(parameters)
+    if not parameters:
+        raise ValueError("fit: no parameters to fit; give at least one FitParameter")
+    if not all(isinstance(p, FitParameter) for p in parameters):
+        raise TypeError("fit: parameters must be FitParameter instances")
+    names = [p.name for p in parameters]
+    if len(set(names)) != len(names):
+        raise ValueError(f"fit: parameter names repeat: {names}")
+    _solver(solver, rtol, atol)  # check the name before any work
+    if not 0 < ess_threshold < 1:
+        raise ValueError(f"fit: ess_threshold = {ess_threshold}; allowed (0, 1)")
+    data, var_meas, use, wl = _measured_arrays(measured, variance, mask)
+    bands = tissue.bands
+    if data.shape[0] != bands.num_bands:
+        raise ValueError(f"fit: the measured stack has {data.shape[0]} bands, the tissue's band grid "
+                         f"{bands.num_bands}")
+    if wl is not None and not np.allclose(wl, np.asarray(bands.wavelengths), atol=0.5):
+        raise ValueError(f"fit: measured wavelengths {wl.tolist()} nm differ from the tissue's "
+                         f"{np.asarray(bands.wavelengths).tolist()} nm")
+    from ..render import Endoscope
+
+    endoscope = Endoscope() if endoscope is None else endoscope
+    if data.shape[1:] != (endoscope.height, endoscope.width):
+        raise ValueError(f"fit: the measured stack is {data.shape[1]} x {data.shape[2]} pixels, the "
+                         f"endoscope's {endoscope.height} x {endoscope.width}")
+    if not use.any():
+        raise ValueError("fit: no measured sample is usable (all masked)")
+    key = jax.random.key(0) if key is None else key
+
+    x0 = []
+    shapes = []
+    for p in parameters:
+        try:
+            leaf = p.where(tissue)
+        except Exception as err:  # noqa: BLE001 - a user callable
+            raise ValueError(f"fit: parameter {p.name!r}: its where(tissue) failed: {err}") from None
+        if not isinstance(leaf, (jax.Array, np.ndarray)):
+            raise TypeError(f"fit: parameter {p.name!r} selects a {type(leaf).__name__}, not an array leaf")
+        shapes.append(tuple(np.shape(leaf)))
+        x0.append(np.reshape(p.to_unconstrained(np.asarray(leaf)), -1))
+    layout = Layout(parameters, tuple(shapes), scale=scale)
+    if scale:
+        x0.append(np.zeros(1))
+    x = jnp.asarray(np.concatenate(x0), jnp.float64)
+
+    def do_render(t, k):
+        return render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=options,
+                      illumination=illumination, observation_filter=observation_filter, replay=True)
+
+    t_start = time.perf_counter()
+    rel_var = np.zeros(bands.num_bands)
+    if simulation_variance:
+        base = layout.tissue(tissue, x)
+        s = [do_render(base, jax.random.fold_in(key, 1000 + i)).stack for i in range(2)]
+        s0 = 0.5 * (s[0] + s[1])
+        for b in range(bands.num_bands):
+            ok = use[b] & (s0[b] > 0)
+            rel_var[b] = float(np.median((s[0][b][ok] - s[1][b][ok]) ** 2 / (2 * s0[b][ok] ** 2))) if ok.any() else 0.0
+
+    data_j, use_j = jnp.asarray(data), jnp.asarray(use)
+    prior_idx, prior_mean, prior_sd = [], [], []
+    offset = 0
+    for p, sh in zip(parameters, shapes):
+        n = int(np.prod(sh))
+        if p.prior is not None:
+            prior_idx += list(range(offset, offset + n))
+            prior_mean += [p.prior[0]] * n
+            prior_sd += [p.prior[1]] * n
+        offset += n
+    prior_idx = np.asarray(prior_idx, int)
+    prior_mean, prior_sd = jnp.asarray(prior_mean, jnp.float64), jnp.asarray(prior_sd, jnp.float64)
+
+    def residuals(xv, args):
+        replay, sigma = args
+        sim = replay.stack(layout.tissue(tissue, xv)) * layout.scale_of(xv)
+        r = jnp.where(use_j, (sim - data_j) / sigma, 0.0).reshape(-1)
+        if prior_idx.size:
+            r = jnp.concatenate([r, (layout.values(xv)[prior_idx] - prior_mean) / prior_sd])
+        return r
+
+    solver_obj = _solver(solver, rtol, atol)
+    history = []
+    converged, reason = False, f"not converged after {max_retraces} re-traces (parameters still moving)"
+    std_x = None
+    rendered = None
+    for it in range(max_retraces):
+        t_it = time.perf_counter()
+        current = layout.tissue(tissue, x)
+        rendered = do_render(current, key)
+        replay = rendered.replay
+        sim0 = rendered.stack * float(layout.scale_of(x))
+        var = var_meas + (rel_var[:, None, None] * sim0**2 if simulation_variance else 0.0)
+        sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+        args = (replay, sigma)
+        chi2_start = float(jnp.sum(residuals(x, args) ** 2))
+        sol = optx.least_squares(residuals, solver_obj, x, args, max_steps=inner_steps, throw=False)
+        inner_result, n_inner, x_new = _result_message(sol.result), int(sol.stats["num_steps"]), sol.value
+        if not bool(jnp.all(jnp.isfinite(x_new))):
+            reason = f"inner solve returned non-finite parameters at re-trace {it}"
+            break
+        # shorten the step: ESS and per-parameter step limits
+        t_step, ess_min = _limit_step(layout, tissue, replay, x, x_new, ess_threshold)
+        x_next = x + t_step * (x_new - x)
+        chi2_end = float(jnp.sum(residuals(x_next, args) ** 2))
+        # standard errors in x at the new point (this replay) for the stopping test
+        jac = np.asarray(jax.jacfwd(residuals)(x_next, args))
+        std_x = _std_from_jac(jac)
+        dx = np.abs(np.asarray(x_next - x))
+        moved = dx / np.where(np.isfinite(std_x) & (std_x > 0), std_x, np.inf)
+        history.append({
+            "retrace": it, "values": np.asarray(layout.values(x_next)).tolist(),
+            "chi2_start": chi2_start, "chi2_end": chi2_end, "inner_steps": n_inner,
+            "inner_result": inner_result, "step_fraction": float(t_step), "ess_min": ess_min,
+            "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
+        })
+        x = x_next
+        if t_step == 1.0 and np.all((moved < tol_sigma) | (dx < 1e-9)):
+            converged, reason = True, f"parameters moved < {tol_sigma} standard errors between re-traces"
+            break
+    # final render at the optimum: the Jacobian, residuals and metrics there
+    seconds_fit = time.perf_counter() - t_start
+    final = do_render(layout.tissue(tissue, x), key)
+    replay = final.replay
+    sim_final = np.asarray(replay.stack(layout.tissue(tissue, x))) * float(layout.scale_of(x))
+    var = var_meas + (rel_var[:, None, None] * sim_final**2 if simulation_variance else 0.0)
+    sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+    r = np.asarray(residuals(x, (replay, sigma)))
+    jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma)))
+    dv_dx = np.asarray(jax.jacfwd(layout.values)(x))
+    chi2 = float(np.sum(r**2))
+    dof = max(int(use.sum()) + int(prior_idx.size) - layout.size, 1)
+    birge = max(1.0, chi2 / dof)
+    cov_sim = np.zeros((layout.size, layout.size))
+    try:
+        cov_x = np.linalg.inv(jac_x.T @ jac_x)
+        cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
+        if simulation_keys:
+            # the fit's own Monte Carlo noise: how far the optimum moves with the simulation's random numbers
+            # (linear response to renders at other keys; their spread is correlated over the whole image)
+            tissue_x = layout.tissue(tissue, x)
+            sims = [sim_final] + [np.asarray(do_render(tissue_x, jax.random.fold_in(key, 2000 + i)).stack)
+                                  * float(layout.scale_of(x)) for i in range(simulation_keys)]
+            mean = np.mean(sims, axis=0)
+            gain = cov_x @ jac_x[: data.size].T  # [p, pixels]: d x / d (residuals)
+            moves = [dv_dx @ (gain @ np.where(use, (si - mean) / np.asarray(sigma), 0.0).reshape(-1)) for si in sims]
+            cov_sim = sum(np.outer(m, m) for m in moves) / simulation_keys
+        cov = cov_stat + cov_sim
+    except np.linalg.LinAlgError:
+        cov = cov_stat = np.full((layout.size, layout.size), np.nan)
+        converged, reason = False, "J^T J is singular at the optimum: a parameter does not affect the residuals"
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(std, std)
+    n_pix = data.shape[1] * data.shape[2]
+    resid_map = r[: data.size].reshape(data.shape)
+    if throw and not converged:
+        raise RuntimeError(f"fit did not converge: {reason}")
+    return FitResult(
+        names=tuple(layout.labels()), values=np.asarray(layout.values(x)), uncertainties=std,
+        covariance=cov, correlation=corr, statistical_uncertainties=np.sqrt(np.clip(np.diag(cov_stat), 0, None)),
+        simulation_uncertainties=np.sqrt(np.clip(np.diag(cov_sim), 0, None)), unconstrained=np.asarray(x), chi2=chi2, dof=dof, birge_ratio=birge,
+        residuals=resid_map, simulated=sim_final, measured=data, mask=use, wavelengths=np.asarray(bands.wavelengths),
+        history=tuple(history), converged=converged, reason=reason, seconds=seconds_fit,
+        tissue=layout.tissue(tissue, x), simulation_rel_variance=rel_var, solver=solver,
+        settings={"photons": int(photons), "scale": bool(scale), "ess_threshold": ess_threshold,
+                  "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
+                  "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
+                  "simulation_variance": "two renders at the initial guess, relative variance per band" if
+                  simulation_variance else None},
+    )
+
+
+def _result_message(result) -> str:
+    if result == optx.RESULTS.successful:
+        return "successful"
+    try:
+        return str(optx.RESULTS[result])  # pragma: no cover - depends on optimistix's enumeration API
+    except Exception:  # noqa: BLE001
+        return "inner solve stopped: " + ("max_steps reached" if result == optx.RESULTS.max_steps_reached else "failed")
+
+
+def _std_from_jac(jac: np.ndarray) -> np.ndarray:
+    try:
+        return np.sqrt(np.clip(np.diag(np.linalg.inv(jac.T @ jac)), 0, None))
+    except np.linalg.LinAlgError:
+        return np.full(jac.shape[1], np.inf)
+
+
+def _limit_step(layout: Layout, tissue, replay, x, x_new, threshold: float):
+    """The largest t in {1, 1/2, 1/4, ...} (>= 1/64) with ESS >= threshold at x + t (x_new - x) and
+    every parameter's change within its step limit; and the smallest ESS ratio there."""
+    v0, v1 = np.asarray(layout.values(x)), np.asarray(layout.values(x_new))
+    t = 1.0
+    offset = 0
+    for p, sh in zip(layout.parameters, layout.shapes):
+        n = int(np.prod(sh))
+        lim = p.step_limit
+        if lim is not None:
+            d = np.max(np.abs(v1[offset:offset + n] - v0[offset:offset + n]))
+            if d > lim:
+                t = min(t, lim / d)
+        offset += n
+    ess_min = math.nan
+    for _ in range(7):
+        ess = replay.effective_sample_size(layout.tissue(tissue, x + t * (x_new - x)))
+        vals = np.concatenate([np.asarray(v, np.float64).reshape(-1) for v in ess.values()])
+        vals = vals[np.isfinite(vals)]
+        ess_min = float(vals.min()) if vals.size else math.nan
+        if not vals.size or ess_min >= threshold:
+            break
+        t *= 0.5
+    return t, ess_min
