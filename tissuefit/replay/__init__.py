@@ -4,7 +4,7 @@ Trace once at the current parameters, keep each contribution's path statistics, 
 tallies, records and images as explicit JAX functions of the parameters, with every sampled
 distance and direction held fixed:
 
-- `tallies(scene, ...)`: single-band tallies (rd, tt, a, rd_r, a_z, a_layer) differentiable in
+- `tallies(scene, ...)`: single-band tallies (rd, tt, a and every resolved tally) differentiable in
   the layers' mua, mus, g (detached form T0 + J (theta - stop_gradient(theta))).
 - `trace_records(scene, ...)` -> `EscapeReplay`: a spectral trace whose escaping photons are all
   replayable: rd and escaping fluorescence per band at any nearby tissue, exactly in mua, mus,

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 from .._checks import is_concrete
 from ..scene import LayeredTissue, Scene, SpectralScene, SpectralTissue
-from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions, trace, trace_spectral
+from ..transport import TALLY_NAMES, RecordSpec, SpectralOptions, TallySpec, TraceOptions, trace, trace_spectral
 from ._records import RecordReplay
 
 DIFFERENTIABLE = ("mua", "mus", "g")
@@ -32,7 +32,7 @@ NOT_DIFFERENTIABLE = ("n", "thickness", "n_above", "n_below")
 """Geometry: moving a face or changing an index changes which paths escape (boundary terms the
 likelihood ratio does not see). Asking for their derivative is an error, never a silent zero."""
 
-JACOBIAN_TALLIES = ("rd", "tt", "a", "rd_r", "a_z", "a_layer")
+JACOBIAN_TALLIES = ("rd", "tt", "a") + TALLY_NAMES
 
 
 def _is_tracer(x) -> bool:
@@ -74,9 +74,8 @@ def tallies(scene: Scene, *, key, photons: int, tallies: TallySpec = TallySpec(n
             options: TraceOptions = TraceOptions(), **trace_kwargs) -> dict:
     """Trace `scene` and return its tallies as differentiable functions of `scene.tissue`'s mua, mus, g.
 
-    Returns a dict: "rd", "tt", "a" (always), and "rd_r" [nr], "a_z" [nz], "a_layer" [layers] when in
-    `tallies.names` (other resolved tallies have no path statistics: asking for them is an error),
-    each a JAX array equal to the traced tally whose derivative with respect to the layers' mua,
+    Returns a dict: "rd", "tt", "a" (always), and every resolved tally in `tallies.names` (rd_r, rd_a,
+    rd_ra, tt_r, tt_a, tt_ra, a_z, a_rz, a_layer, in `TraceResult`'s units), each a JAX array equal to the traced tally whose derivative with respect to the layers' mua,
     mus, g [1/cm, 1/cm, -] is the likelihood-ratio (pMC) derivative, plus "result": the
     `TraceResult` (numpy; standard errors there). Keyword arguments go to `trace`.
     Works under `jax.grad`, `jax.jacfwd`, `jax.jacrev`, `jax.jvp` (not `jit`: it traces eagerly).

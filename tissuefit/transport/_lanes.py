@@ -63,9 +63,8 @@ class _Acc(NamedTuple):
     tt_path: Array | None
     rd_path2: Array | None  # [3, layers]: sums of squares of the per-photon terms (standard errors)
     tt_path2: Array | None
-    rd_r_path: Array | None  # [nr, 3, layers]: the same per radial bin (path_stats and rd_r)
-    a_z_path: Array | None  # [nz, 4, layers]: sums of dep*L, dep*k, dep*score, (w/mut)*onehot per depth bin
-    a_layer_path: Array | None  # [layers, 4, layers]: the same per absorbing layer
+    jac: dict | None  # path_stats: per requested resolved tally, [*bins, 3 or 4, layers] sums
+    # (escaping: w*L, w*k, w*score; absorbed: dep*L, dep*k, dep*score, (w/mut)*onehot; see PathStats)
 
 
 class _Medium(NamedTuple):
@@ -93,8 +92,10 @@ def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
 
     path = jnp.zeros((3, layers), f64) if options.path_stats else None
 
-    def jac(name, bins, stats):
-        return jnp.zeros((bins, stats, layers), f64) if options.path_stats and tallies.wants(name) else None
+    jac = None
+    if options.path_stats:
+        jac = {name: jnp.zeros(tuple(_bins(tallies, layers)[name]) + (4 if name.startswith("a_") else 3, layers), f64)
+               for name in tallies.names}
     return _Acc(
         next_pid=jnp.zeros((), jnp.int64),
         rsp=jnp.zeros((), f64),
@@ -113,10 +114,15 @@ def _zeros_acc(tallies: TallySpec, options: TraceOptions, layers: int) -> _Acc:
         tt_path=path,
         rd_path2=path,
         tt_path2=path,
-        rd_r_path=jac("rd_r", tallies.nr, 3),
-        a_z_path=jac("a_z", tallies.nz, 4),
-        a_layer_path=jac("a_layer", layers, 4),
+        jac=jac,
     )
+
+
+def _bins(tallies: TallySpec, layers: int) -> dict:
+    """Each resolved tally's bin shape."""
+    nr, na, nz = tallies.nr, tallies.na, tallies.nz
+    return {"rd_r": (nr,), "rd_a": (na,), "rd_ra": (nr, na), "tt_r": (nr,), "tt_a": (na,), "tt_ra": (nr, na),
+            "a_z": (nz,), "a_rz": (nr, nz), "a_layer": (layers,)}
 
 
 def _idle_lanes(lanes: int, layers: int, dtype, path_stats: bool) -> _Lanes:
@@ -176,8 +182,15 @@ def _harvest(lanes: _Lanes, acc: _Acc, tallies: TallySpec) -> tuple[_Lanes, _Acc
         upd["tt_path"] = acc.tt_path + jnp.einsum("l,slk->sk", bottom, stats)
         upd["rd_path2"] = acc.rd_path2 + jnp.einsum("l,slk->sk", top * top, stats * stats)
         upd["tt_path2"] = acc.tt_path2 + jnp.einsum("l,slk->sk", bottom * bottom, stats * stats)
-        if acc.rd_r_path is not None:
-            upd["rd_r_path"] = acc.rd_r_path.at[ir].add(top[:, None, None] * jnp.moveaxis(stats, 0, 1))
+        if acc.jac:
+            per_lane = jnp.moveaxis(stats, 0, 1)  # [lanes, 3, layers]
+            where = {"r": (ir,), "a": (ia,), "ra": (ir, ia)}
+            jac = dict(acc.jac)
+            for name in jac:
+                if name[:3] in ("rd_", "tt_"):
+                    w = top if name.startswith("rd") else bottom
+                    jac[name] = jac[name].at[where[name[3:]]].add(w[:, None, None] * per_lane)
+            upd["jac"] = jac
     lanes = lanes._replace(status=jnp.where(done, IDLE, lanes.status))
     return lanes, acc._replace(**upd)
 
@@ -391,7 +404,8 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     deposit = jnp.where(interact, dw, 0.0).astype(jnp.float64)
     acc_upd = {}
     deposit_stats = None
-    if acc.a_z_path is not None or acc.a_layer_path is not None:
+    absorbed = [name for name in (acc.jac or {}) if name.startswith("a_")]
+    if absorbed:
         # The deposit w mua/mut at the j-th interaction, as a function of the parameters, is
         # deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0 (DESIGN.md §5):
         # its derivatives need L (this hop included), the scatterings before it, their HG score,
@@ -402,10 +416,8 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
             deposit[:, None] * upd["path_len"].astype(f64), deposit[:, None] * before.scatters.astype(f64),
             deposit[:, None] * before.score.astype(f64), per_w[:, None] * onehot.astype(f64),
         ], axis=1)  # [lanes, 4, layers]
-    if acc.a_z is not None or acc.a_rz is not None or acc.a_z_path is not None:
+    if acc.a_z is not None or acc.a_rz is not None:
         iz = _bin(_pick(medium.z0, layer) + z, tallies.dz, tallies.nz)
-        if acc.a_z_path is not None:
-            acc_upd["a_z_path"] = acc.a_z_path.at[iz].add(deposit_stats)
         if acc.a_z is not None:
             acc_upd["a_z"] = acc.a_z.at[iz].add(deposit)
         if acc.a_rz is not None:
@@ -413,6 +425,10 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
             acc_upd["a_rz"] = acc.a_rz.at[ir, iz].add(deposit)
     if acc.a_layer is not None:
         acc_upd["a_layer"] = acc.a_layer.at[layer].add(deposit)
-    if acc.a_layer_path is not None:
-        acc_upd["a_layer_path"] = acc.a_layer_path.at[layer].add(deposit_stats)
+    if absorbed:
+        where = {"a_z": lambda: (iz,), "a_rz": lambda: (ir, iz), "a_layer": lambda: (layer,)}
+        jac = dict(acc.jac)
+        for name in absorbed:
+            jac[name] = jac[name].at[where[name]()].add(deposit_stats)
+        acc_upd["jac"] = jac
     return lanes, acc._replace(**acc_upd)

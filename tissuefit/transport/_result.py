@@ -90,13 +90,17 @@ class TraceResult(eqx.Module):
     def jacobian(self, name: str) -> dict:
         """d (tally `name`) / d (mua, mus, g) per layer, from the path statistics: a dict of arrays
         [*tally shape, layers] in the tally's units per 1/cm (mua, mus) or per unit g.
-        `name` in "rd", "tt", "a", "rd_r", "a_z", "a_layer" (the last three when tallied)."""
+        `name` in "rd", "tt", "a" and every resolved tally that was tallied (rd_r, rd_a, rd_ra, tt_r,
+        tt_a, tt_ra, a_z, a_rz, a_layer), in that tally's units (as `_normalise` scales it)."""
         if self.path_stats is None:
             raise ValueError("jacobian: the trace kept no path statistics; trace with TraceOptions(path_stats=True)")
         out = self.path_stats.gradient(name)
-        ring, _, _ = bin_measures(self.tallies)
-        scale = {"rd_r": ring[:, None], "a_z": np.full((self.tallies.nz, 1), self.tallies.dz)}.get(name)
-        return out if scale is None else {k: v / scale for k, v in out.items()}
+        t = self.tallies
+        ring, solid, projected = bin_measures(t)
+        area_angle = ring[:, None] * projected[None, :]
+        scale = {"rd_r": ring, "tt_r": ring, "rd_a": solid, "tt_a": solid, "rd_ra": area_angle, "tt_ra": area_angle,
+                 "a_z": np.full(t.nz, t.dz), "a_rz": ring[:, None] * t.dz}.get(name)
+        return out if scale is None else {k: v / scale[..., None] for k, v in out.items()}
 
     @property
     def r_cm(self) -> np.ndarray:
@@ -120,13 +124,13 @@ class PathStats(eqx.Module):
 
     Escaping light: `rd[0, l]` = sum over reflected photons of w * (path length in layer l) / N [cm];
     `rd[1, l]` = sum of w * (interactions in layer l) / N; `rd[2, l]` = sum of
-    w * (sum over its scatterings in l of d log p_HG / dg) / N. `tt` likewise for transmitted photons,
-    `rd_r` [nr, 3, layers] per radial bin (when `rd_r` is tallied; units of rd_r times cm or 1).
-
-    Absorbed light (when `a_z` / `a_layer` are tallied): `a_z` [nz, 4, layers] and `a_layer`
-    [layers, 4, layers] hold, per bin, the sums of deposit * L_l, deposit * k_l (scatterings before
-    the deposit), deposit * score_l, and (arriving weight / mut) * [deposit in layer l], since a
-    deposit at the j-th interaction is deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0.
+    w * (sum over its scatterings in l of d log p_HG / dg) / N. `tt` likewise for transmitted photons.
+    `resolved[name]` holds the same per bin of every resolved tally that was requested: escaping ones
+    (rd_r, rd_a, rd_ra, tt_r, tt_a, tt_ra) [*bins, 3, layers] as above (raw sums, not yet divided
+    by the bin measures); absorbed ones (a_z, a_rz, a_layer) [*bins, 4, layers]: the sums of
+    deposit * L_l, deposit * k_l (scatterings before the deposit), deposit * score_l and
+    (arriving weight / mut) * [deposit in layer l], since a deposit at the j-th interaction is
+    deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0.
 
     For an escaping contribution W = W0 (mus/mus0)^k exp(-(mut - mut0) L) prod p_g/p_g0, so
     d rd / d mua_l = -rd[0, l], d rd / d mus_l = rd[1, l]/mus_l - rd[0, l], d rd / d g_l = rd[2, l].
@@ -139,9 +143,7 @@ class PathStats(eqx.Module):
     rd: Float[Array, "3 layers"]
     tt: Float[Array, "3 layers"]
     mus: Float[Array, " layers"]
-    rd_r: Float[Array, "nr 3 layers"] | None = None
-    a_z: Float[Array, "nz 4 layers"] | None = None
-    a_layer: Float[Array, "layers 4 layers"] | None = None
+    resolved: dict | None = None
     rd2: Float[Array, "3 layers"] | None = None
     tt2: Float[Array, "3 layers"] | None = None
     photons: int = 0
@@ -183,8 +185,8 @@ class PathStats(eqx.Module):
     def gradient(self, name: str) -> dict:
         """d (tally `name`) / d (mua, mus, g): arrays [*tally shape, layers] in the tally's units
         per 1/cm (mua, mus) or per unit g. `name`: "rd", "tt", "a" (total absorbed, from the balance
-        a = 1 - rsp - rd - tt), or "rd_r", "a_z", "a_layer" when tallied (raw per-bin sums here;
-        `TraceResult.jacobian` divides by the bin sizes)."""
+        a = 1 - rsp - rd - tt), or any resolved tally that was tallied (raw per-bin sums here;
+        `TraceResult.jacobian` divides by the bin measures)."""
         if name == "rd":
             return self.rd_gradient()
         if name == "tt":
@@ -192,10 +194,10 @@ class PathStats(eqx.Module):
         if name == "a":
             rd, tt = self.rd_gradient(), self.tt_gradient()
             return {k: -(rd[k] + tt[k]) for k in rd}
-        stats = {"rd_r": self.rd_r, "a_z": self.a_z, "a_layer": self.a_layer}.get(name)
+        stats = (self.resolved or {}).get(name)
         if stats is None:
             raise ValueError(
                 f"gradient: no path statistics for {name!r}; available with TraceOptions(path_stats=True): "
-                "'rd', 'tt', 'a', and 'rd_r', 'a_z', 'a_layer' when they are in TallySpec.names"
+                f"'rd', 'tt', 'a', and the resolved tallies in TallySpec.names ({sorted(self.resolved or {})})"
             )
         return self._grads(stats)

@@ -290,7 +290,7 @@ def _normalise(acc: _Acc, photons: int, scene: Scene, tallies: TallySpec, option
     if a.rd_path is not None:
         per = lambda v: None if v is None else np.asarray(v) / n  # noqa: E731
         path_stats = PathStats(rd=a.rd_path / n, tt=a.tt_path / n, mus=np.asarray(scene.tissue.mus),
-                               rd_r=per(a.rd_r_path), a_z=per(a.a_z_path), a_layer=per(a.a_layer_path),
+                               resolved={k: per(v) for k, v in (a.jac or {}).items()},
                                rd2=per(a.rd_path2), tt2=per(a.tt_path2), photons=photons)
     return TraceResult(
         photons=photons, tallies=tallies, options=options,
