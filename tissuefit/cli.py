@@ -1,5 +1,6 @@
 """Command line: `tissuefit simulate SCENE`, `tissuefit render SCENE --out DIR`, `tissuefit check SCENE`,
-`tissuefit compare SIM MEASURED --out DIR`, `tissuefit --version`.
+`tissuefit compare SIM MEASURED --out DIR`, `tissuefit fit MEASURED --scene SCENE --free ... --out DIR`,
+`tissuefit --version`.
 
 Thin by design: parse arguments → read and validate the scene file (tissuefit.io) → call
 `tissuefit.trace` (single-band scenes), `tissuefit.trace_spectral` (spectral scenes) or
@@ -98,6 +99,7 @@ def _parser() -> argparse.ArgumentParser:
                                             "data_spec/stack.md), rendered or measured.")
     check.add_argument("scene", metavar="SCENE|STACK", help="scene file (.toml, .mci) or stack (.tif, .json)")
     _add_compare_parser(commands)
+    _add_fit_parser(commands)
     return parser
 
 
@@ -525,11 +527,83 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_fit_parser(commands) -> None:
+    fit = commands.add_parser(
+        "fit", help="fit tissue parameters of a scene to a measured stack",
+        description="Prepare MEASURED (calibration, dead-band masks, band registration; data_spec/measured.md) and "
+                    "fit the --free parameters of --scene's tissue (its values are the initial guess) so that its "
+                    "render matches it: optimistix on the replayed render, re-traced with the same seed. Writes "
+                    "DIR/fit.json (values, uncertainties, correlations, per-band SSIM/PSNR, convergence history, "
+                    "the scene echo) and DIR/fit.png (measured, fitted and residual maps). MEASURED needs a noise "
+                    "model (noise a, b) and the scene's bands and image size.")
+    fit.add_argument("measured", metavar="MEASURED",
+                     help="measured stack: a sidecar (.json or .tif), a folder of band images, or an ENVI header (.hdr)")
+    fit.add_argument("--scene", metavar="SCENE", required=True, help="spectral scene file (.toml): geometry, "
+                                                                     "lights and the initial guess")
+    fit.add_argument("--free", metavar="NAME[,NAME...]", required=True,
+                     help="parameters to fit: layer<i>.<field> or region<j>.<field> (mua, mus, g, a, b, c_ppix, "
+                          "yield_ppix, blood_fraction, ...) or a bare field naming one medium")
+    fit.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for fit.json and fit.png")
+    fit.add_argument("--photons", type=int, metavar="N", help="photons per render (overrides [render])")
+    fit.add_argument("--seed", type=int, metavar="S", help=f"the fit's PRNG seed (default {DEFAULT_SEED})")
+    fit.add_argument("--solver", choices=("levenberg-marquardt", "gauss-newton", "bfgs"), default="levenberg-marquardt")
+    fit.add_argument("--scale", action="store_true", help="also fit a free scale on the simulation (unknown "
+                                                          "absolute calibration)")
+    fit.add_argument("--max-retraces", type=int, metavar="N", default=8, help="re-traces at most (default 8)")
+    fit.add_argument("--no-register", action="store_true", help="skip the band-to-band registration")
+    fit.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+
+
+def _fit(args: argparse.Namespace) -> int:
+    """`tissuefit fit MEASURED --scene SCENE --free ... --out DIR`."""
+    from .fit import fit, fit_plot_png, fit_report, parameters_from_names
+
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    run = _render_run(args.scene)
+    spec = run.render or io.RenderSpec()
+    seed = next((s for s in (args.seed, spec.seed, run.seed) if s is not None), DEFAULT_SEED)
+    if not 0 <= seed <= _MAX_SEED:
+        raise _InvalidInput(f"--seed = {seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    try:
+        photons = spec.photons if args.photons is None else check_positive_int("--photons", args.photons,
+                                                                              high=io.MAX_PHOTONS)
+        check_positive_int("--max-retraces", args.max_retraces, high=100)
+        tissue = run.scene.tissue
+        parameters = parameters_from_names(tissue, [n for n in args.free.split(",") if n.strip()])
+        measured = io.prepare_measured(io.read_measured(args.measured), register=not args.no_register)
+        result = fit(measured, tissue, parameters, endoscope=spec.endoscope, spectrum=run.scene.spectrum,
+                     photons=photons, key=jax.random.key(seed), options=spec.options,
+                     observation_filter=spec.observation_filter, scale=args.scale, solver=args.solver,
+                     max_retraces=args.max_retraces)
+    except ValueError as err:
+        raise _InvalidInput(f"{args.measured}: {err}") from None
+    report = fit_report(result, extra={"scene": io.scene_to_dict(run), "measured": str(args.measured),
+                                       "seed": int(seed), "free": [p.name for p in parameters],
+                                       "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}})
+    picture = fit_plot_png(result)
+    out.mkdir(parents=True, exist_ok=True)
+    io.write_json(out / "fit.json", report)
+    with atomic_writer(out / "fit.png", binary=True) as handle:
+        handle.write(picture)
+    if args.json:
+        print(json.dumps(report, indent=2, allow_nan=False))
+    else:
+        lines = [f"fit {'converged' if result.converged else 'NOT converged'}: {result.reason}",
+                 f"chi2 {result.chi2:.1f} / {result.dof} dof, {len(result.history)} re-traces, {result.seconds:.1f} s"]
+        lines += [f"  {n:<24} {v:12.5g} +- {e:.3g}" for n, v, e in zip(result.names, result.values, result.uncertainties)]
+        lines += [f"wrote {out / 'fit.json'}, {out / 'fit.png'}"]
+        print("\n".join(lines), flush=True)
+    return 0 if result.converged else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `tissuefit` command; returns the exit status (2 for invalid input)."""
     args = _parser().parse_args(argv)
     try:
-        return {"simulate": _simulate, "render": _render, "check": _check, "compare": _compare}[args.command](args)
+        return {"simulate": _simulate, "render": _render, "check": _check, "compare": _compare,
+                "fit": _fit}[args.command](args)
     except _InvalidInput as err:
         print(f"tissuefit: error: {err}", file=sys.stderr)
         return EXIT_INVALID
