@@ -211,6 +211,12 @@ def fit(
         current = layout.tissue(tissue, x)
         rendered = do_render(current, key)
         replay = rendered.replay
+        if scale and it == 0:
+            # start the free scale at the least-squares gain of the first render (camera units are arbitrary)
+            w = np.where(use, 1.0 / np.maximum(var_meas, 1e-300), 0.0)
+            num, den = np.sum(w * rendered.stack * data), np.sum(w * rendered.stack**2)
+            if num > 0 and den > 0:
+                x = x.at[-1].set(math.log(num / den))
         sim0 = rendered.stack * float(layout.scale_of(x))
         var = var_meas + (rel_var[:, None, None] * sim0**2 if simulation_variance else 0.0)
         sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))

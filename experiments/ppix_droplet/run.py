@@ -1,0 +1,121 @@
+"""The PpIX droplet (issue 7): a 'measured' stack of a PpIX droplet on a tissue sample at hidden
+parameters, with Poisson–Gaussian noise, random shifts of up to 3 pixels between bands and one dead
+band, fitted back from a wrong initial guess by `tissuefit.fit`.
+
+The sample: one semi-infinite layer, background absorption mua [1/cm], power-law scattering
+mus'(λ) = a (λ/500 nm)^-b (b fixed), anisotropy g, and PpIX (concentration c, yield φ fixed: the
+fluorescence fixes c φ, the absorption c alone; c φ is reported) filling the view (the droplet
+spreads over the field). Lit by the endoscope's white cone lights; 400–720 nm, 16 nm bands.
+
+Pipeline per seed: render the truth (photons x `--measured-factor`, key 10^6 + seed), scale to
+camera counts (peak `--counts`), Poisson + Gaussian read noise (b = 4 counts^2), shift every band
+but the reference one by a random integer (-3..3, -3..3) pixels, black out one band; write it as a
+measured stack (data_spec/measured.md) and read it back; `prepare_measured` (dead band, registration);
+fit mua, a, g, c with a free scale (the counts' absolute calibration is unknown).
+
+    .venv/bin/python experiments/ppix_droplet/run.py --size 16 --photons 20000 --seeds 1
+    (the issue's size: --size 128 --seeds 5)
+
+Writes experiments/ppix_droplet/out/seed<k>/fit.json, fit.png and summary.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import tissuefit as tf
+from tissuefit import io
+from tissuefit import render as rd
+from tissuefit.fit import FitParameter, write_fit_plot, write_fit_report
+
+HERE = Path(__file__).resolve().parent
+
+TRUTH = {"mua": 1.5, "a": 15.0, "g": 0.85, "c": 2.0}
+GUESS = {"mua": 2.2, "a": 10.0, "g": 0.8, "c": 1.2}
+B_POWER, YIELD = 1.3, 0.1
+
+
+def sample(bands, mua, a, g, c):
+    optics = tf.LayerOptics([tf.ConstantAbsorption(mua), tf.protoporphyrin_ix(bands, c=c, quantum_yield=YIELD)],
+                            tf.PowerLawScattering(a, B_POWER, g))
+    return tf.SpectralTissue([optics], n=[1.38], thickness=[math.inf], bands=bands)
+
+
+PARAMETERS = [
+    FitParameter("mua", lambda t: t.layers[0].absorbers[0].mua, "log", units="1/cm"),
+    FitParameter("a", lambda t: t.layers[0].scattering.a, "log", units="1/cm"),
+    FitParameter("g", lambda t: t.layers[0].scattering.g, "logit-g", (0.5, 0.98)),
+    FitParameter("c_ppix", lambda t: t.layers[0].absorbers[1].c, "log", units="x 10 uM"),
+]
+
+
+def measure(truth_stack: np.ndarray, rng: np.random.Generator, counts: float, dead: int, ref: int):
+    """Camera counts: Poisson(signal) + N(0, 4), bands shifted by integers up to 3 px, `dead` black."""
+    signal = truth_stack / truth_stack.max() * counts
+    raw = rng.poisson(signal).astype(np.float64) + rng.normal(0.0, 2.0, signal.shape)
+    shifts = rng.integers(-3, 4, size=(raw.shape[0], 2))
+    shifts[ref] = 0
+    for k in range(raw.shape[0]):
+        raw[k] = np.roll(raw[k], tuple(shifts[k]), axis=(0, 1))
+    raw[dead] = rng.normal(0.0, 2.0, raw[dead].shape)
+    return raw, shifts
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", type=int, default=16)
+    ap.add_argument("--photons", type=int, default=20_000)
+    ap.add_argument("--measured-factor", type=int, default=4)
+    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--counts", type=float, default=4000.0)
+    ap.add_argument("--max-retraces", type=int, default=6)
+    ap.add_argument("--out", type=Path, default=HERE / "out")
+    args = ap.parse_args(argv)
+    bands = tf.BandGrid([400.0 + 16.0 * k for k in range(21)], 16.0)
+    endo = rd.Endoscope(beta_deg=0.0, distance=1.0, fov_deg=25.0, width=args.size, height=args.size)
+    options = rd.RenderOptions(specular_deg=0.0, fluorescence="surface")
+    ref, dead = 10, 3
+    rows = []
+    for seed in range(args.seeds):
+        rng = np.random.default_rng(seed)
+        t0 = time.perf_counter()
+        truth = rd.render(sample(bands, **TRUTH), endo, photons=args.photons * args.measured_factor,
+                          key=jax.random.key(1_000_000 + seed), options=options).stack
+        raw, shifts = measure(truth, rng, args.counts, dead, ref)
+        out = args.out / f"seed{seed}"
+        out.mkdir(parents=True, exist_ok=True)
+        stack = io.make_stack(raw, wavelengths=bands.wavelengths, widths=bands.widths, kind="measured",
+                              units="counts", noise={"a": 1.0, "b": 4.0})
+        io.write_stack(out / "measured.tif", stack)
+        measured = io.prepare_measured(io.read_measured(out / "measured.json"), reference_band=ref)
+        t_gen = time.perf_counter() - t0
+        result = tf.fit(measured, sample(bands, **GUESS), PARAMETERS, endoscope=endo, photons=args.photons,
+                        key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces)
+        got = dict(zip(result.names, zip(result.values, result.uncertainties)))
+        row = {"seed": seed, "seconds_fit": result.seconds, "seconds_measurement": t_gen,
+               "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
+               "shifts_px": shifts.tolist()}
+        for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):
+            v, e = got[name]
+            row[name] = {"true": true, "value": v, "uncertainty": e, "rel_error": v / true - 1,
+                         "pull": (v - true) / e if e > 0 else None}
+        v, e = got["c_ppix"]
+        row["c_yield"] = {"true": TRUTH["c"] * YIELD, "value": v * YIELD, "uncertainty": e * YIELD}
+        rows.append(row)
+        write_fit_report(result, out / "fit.json", extra={"truth": TRUTH, "guess": GUESS, "shifts_px": shifts.tolist()})
+        write_fit_plot(result, out / "fit.png")
+        print(json.dumps(row, indent=1), flush=True)
+    summary = {"size": args.size, "bands": 21, "photons": args.photons, "measured_photons": args.photons * args.measured_factor,
+               "seeds": rows, "tissuefit_version": io._report.tissuefit_version() if hasattr(io, "_report") else None}
+    io.write_json(args.out / "summary.json", summary)
+
+
+if __name__ == "__main__":
+    main()
