@@ -102,6 +102,7 @@ def fit(
     simulation_variance: bool = True,
     throw: bool = False,
     simulation_keys: int = 4,
+    progress=None,
 ) -> FitResult:
     """Fit `parameters` of `tissue` so that its render matches `measured`.
 
@@ -119,6 +120,8 @@ def fit(
     - `max_retraces`, `ess_threshold`, `tol_sigma`: the outer loop (module docstring).
     - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2.
     - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
+    - `simulation_keys`: renders at other keys at the optimum for the simulation part of the
+      uncertainty (0: none); `progress`: called with each re-trace's history entry (a dict).
     Returns a `FitResult`.
     """
     parameters = tuple(parameters)
@@ -243,6 +246,8 @@ def fit(
             "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
         })
         x = x_next
+        if progress is not None:
+            progress(history[-1])
         if t_step == 1.0 and np.all((moved < tol_sigma) | (dx < 1e-9)):
             converged, reason = True, f"parameters moved < {tol_sigma} standard errors between re-traces"
             break
