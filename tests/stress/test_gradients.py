@@ -42,7 +42,7 @@ def _finite(result):
 FEW = (1, 3)
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(scene=scenes(layer_counts=FEW), photons=st.integers(2, 500), precision=st.sampled_from(("float32", "float64")), seed=SEEDS)
 def test_gradients_are_finite_everywhere(scene, photons, precision, seed):
     _finite(run(scene, photons, precision, seed))
@@ -58,7 +58,7 @@ def test_gradients_are_finite_everywhere_many_examples(scene, photons, precision
 # As in test_properties: float32 and float64 runs draw the same random bits, follow the same paths
 # until a rounding flips a decision, then are independent; agreement within K combined standard
 # errors (per-photon second moments) plus a relative rounding allowance.
-@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=8, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(scene=scenes(layer_counts=FEW), photons=st.integers(200, 1000), seed=SEEDS)
 def test_float32_gradients_agree_with_float64(scene, photons, seed):
     r32, r64 = run(scene, photons, "float32", seed), run(scene, photons, "float64", seed)
