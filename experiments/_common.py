@@ -47,7 +47,9 @@ def machine() -> dict:
                 jaxlib=jaxlib.__version__, python=platform.python_version(),
                 devices=[str(d) for d in jax.local_devices()],
                 commit=_git("rev-parse", "--short", "HEAD") + ("-dirty" if dirty else ""),
-                loadavg_start=os.getloadavg(), source=source_state())
+                loadavg_start=os.getloadavg(),
+                uptime_start=subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip(),
+                source=source_state())
 
 
 def machine_line(m: dict) -> str:

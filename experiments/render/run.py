@@ -39,13 +39,12 @@ Sections:
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import os
-import platform
 import re
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -56,6 +55,8 @@ import jax
 from tissuefit.render import Endoscope, RenderOptions, render
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from _common import machine  # noqa: E402  (experiments/_common.py: machine, commit and sources)
 ROOT = HERE.parents[1]
 BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
 MARK_BEGIN, MARK_END = "<!-- render:begin -->", "<!-- render:end -->"
@@ -109,37 +110,6 @@ def group_error(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, wl: np.ndarr
         out[name] = float(math.sqrt(np.sum((a - b) ** 2) / np.sum(b**2)))
     return out
 
-
-def source_state() -> dict:
-    """Which tissuefit ran: the imported package's path, a SHA-256 over its .py files, the git HEAD and
-    the package files that differ from it (the package is edited concurrently; this pins the version)."""
-    import hashlib
-
-    pkg = Path(tf.__file__).resolve().parent
-    h = hashlib.sha256()
-    for f in sorted(pkg.rglob("*.py")):
-        h.update(str(f.relative_to(pkg)).encode()), h.update(f.read_bytes())
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
-    changed = subprocess.run(["git", "status", "--porcelain", "--", "tissuefit"], capture_output=True, text=True,
-                             cwd=HERE.parents[1]).stdout.split("\n")
-    return dict(package=str(pkg), sha256=h.hexdigest(), git_head=head, modified_in_worktree=[c.strip() for c in changed if c.strip()])
-
-
-def machine() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    import jaxlib
-
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
-                           cwd=ROOT).stdout.strip()
-    mem = next((line.split()[1] for line in Path("/proc/meminfo").read_text().splitlines() if line.startswith("MemTotal")), "0")
-    return dict(iso=datetime.datetime.now().astimezone().isoformat(timespec="seconds"), cpu=cpu,
-                nproc=os.cpu_count(), ram_gib=round(int(mem) / 2**20, 1), jax=jax.__version__,
-                jaxlib=jaxlib.__version__, python=platform.python_version(),
-                devices=[str(d) for d in jax.local_devices()], commit=commit + ("-dirty" if dirty else ""),
-                uptime_start=subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
-                source=source_state())
 
 
 # ---------------------------------------------------------------------------------------------

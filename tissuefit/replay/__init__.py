@@ -24,7 +24,6 @@ from ._tallies import (
     DIFFERENTIABLE as DIFFERENTIABLE,
     NOT_DIFFERENTIABLE as NOT_DIFFERENTIABLE,
     EscapeReplay as EscapeReplay,
-    layered as layered,
     tallies as tallies,
     trace_records as trace_records,
 )

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import is_concrete
-from ..scene import LayeredTissue, Scene, SpectralScene, SpectralTissue
+from ..scene import Scene, SpectralScene, SpectralTissue
 from ..transport import TALLY_NAMES, RecordSpec, SpectralOptions, TallySpec, TraceOptions, trace, trace_spectral
 from ._records import RecordReplay
 
@@ -151,13 +151,4 @@ def trace_records(scene: SpectralScene, *, key, photons: int, options: TraceOpti
     return EscapeReplay(replay=RecordReplay(records, scene0.tissue), result=dataclasses.replace(result, surface_records=None))
 
 
-def layered(tissue: LayeredTissue, **values) -> LayeredTissue:
-    """`tissue` with some of mua, mus, g replaced (e.g. by traced values), its geometry kept."""
-    unknown = [k for k in values if k not in DIFFERENTIABLE]
-    if unknown:
-        raise ValueError(f"layered: {unknown[0]!r} is not a differentiable field; allowed {list(DIFFERENTIABLE)}")
-    return eqx.tree_at(lambda t: tuple(getattr(t, k) for k in values), tissue,
-                       tuple(jnp.asarray(v, jnp.float64) for v in values.values()))
-
-
-__all__ = ["tallies", "trace_records", "EscapeReplay", "layered"]
+__all__ = ["tallies", "trace_records", "EscapeReplay"]
