@@ -68,3 +68,12 @@ def update_section(name: str, section: str, path: Path = BENCHMARKS) -> None:
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text.rstrip("\n") + "\n")
     tmp.replace(path)
+
+
+def pareto_front(points: list[dict], time_key: str = "wall_median_s", error_key: str = "rms_rel_err") -> list[dict]:
+    """The points that no other point beats in both time and error (at least as good in both, better
+    in one), sorted by time."""
+    front = [p for p in points if not any(
+        q is not p and q[time_key] <= p[time_key] and q[error_key] <= p[error_key]
+        and (q[time_key] < p[time_key] or q[error_key] < p[error_key]) for q in points)]
+    return sorted(front, key=lambda p: p[time_key])

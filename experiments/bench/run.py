@@ -1,23 +1,33 @@
-"""Run time against error of tissuefit.trace (public API only): relative error versus wall time.
+"""Run time against error (public API only): relative error versus wall time, in three parts.
 
 Usage (from the repository root):
 
-    .venv/bin/python experiments/bench/run.py            # full run, ~10 min on 2 cores; writes
-        experiments/bench/RESULTS.md, results.json, time_vs_error.png, reference.npz (cache)
-        and the bench section of experiments/BENCHMARKS.md
-    .venv/bin/python experiments/bench/run.py --quick    # smoke test, < 1 min; writes into
+    .venv/bin/python experiments/bench/run.py            # all parts, ~15 min on 2 loaded cores; writes
+        experiments/bench/RESULTS.md, results.json, time_vs_error.png, the cached references
+        (reference.npz, render_reference.npz, gradient_reference.npz) and the bench section of
+        experiments/BENCHMARKS.md
+    .venv/bin/python experiments/bench/run.py --only render gradients   # some parts; the others are
+        carried over from results.json
+    .venv/bin/python experiments/bench/run.py --quick    # smoke test, ~3 min; writes into
         experiments/bench/quick/ only (never the project-wide table)
 
-What it measures (README.md beside this file says more): for each case (the paper's tissue under a
-normal pencil beam; the same tissue under a flat beam of radius 0.05 cm), each setting (precision
-float32 / float64 x launch random / halton) and each photon count N, R independent seeds; per run the
-warm wall time of `tf.trace` and, per quantity, the relative error against a high-photon float64
-reference (cached in reference.npz). Reported per (setting, N): RMS over seeds of the relative error,
-the ratio of that to the reported standard errors (honesty), median wall time, and the Pareto frontier
-of (wall time, error) per quantity.
+Parts (README.md beside this file says more):
+(i)   tallies, this file: for each case (the paper's tissue under a normal pencil beam; the same tissue
+      under a flat beam of radius 0.05 cm), each setting (precision float32 / float64 x launch random /
+      halton) and each photon count N, R independent seeds; per run the warm wall time of `tf.trace` and,
+      per quantity (rd, rd_r), the relative error against a high-photon float64 reference. Reported per
+      (setting, N): RMS over seeds of the relative error, the ratio of that to the reported standard
+      errors (honesty), median wall time, figures of merit.
+(ii)  render, render_error.py: a rendered stack against a high-photon reference render, per estimator
+      bandwidth setting and launch count.
+(iii) gradients, gradient_error.py: likelihood-ratio derivatives of rd and rd_r (jacfwd of
+      `tissuefit.replay.tallies`) against central finite differences with common random numbers,
+      float32 / float64.
+Every part reports the Pareto frontier of (wall time, error) per quantity.
 
-Adding a quantity is one function (value, standard error) -> registered in QUANTITIES, plus its name in
-a case's `quantities` (and its tally in `tallies` if it needs one; the reference is then recomputed).
+Adding a quantity to (i) is one function (value, standard error) -> registered in QUANTITIES, plus its
+name in a case's `quantities` (and its tally in `tallies` if it needs one; the reference is then
+recomputed).
 """
 
 from __future__ import annotations
@@ -31,7 +41,7 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -55,6 +65,11 @@ def _sibling(name: str):
     spec.loader.exec_module(module)
     return module
 
+
+sys.path[:0] = [str(HERE), str(HERE.parent)]
+import gradient_error  # noqa: E402  (part iii, beside this file)
+import render_error  # noqa: E402  (part ii)
+from _common import pareto_front, source_state  # noqa: E402  (experiments/_common.py)
 
 _throughput = _sibling("throughput")
 machine_info = _throughput.machine_info  # date, CPU, cores, RAM, jax/jaxlib, commit (+dirty), loadavg_start
@@ -158,7 +173,7 @@ class Setting:
 SETTINGS = tuple(Setting(p, l) for p in ("float32", "float64") for l in ("random", "halton"))
 BASELINE = Setting("float64", "random")
 
-SEEDS_FULL = {10**3: 8, 10**4: 8, 10**5: 8, 10**6: 4, 10**7: 2}
+SEEDS_FULL = {10**3: 4, 10**4: 4, 10**5: 4, 10**6: 2, 10**7: 1}  # sized with parts (ii), (iii): ~15 min in all
 REF_PHOTONS_FULL = {"pencil": 30_000_000, "flat": 20_000_000}
 QUICK_PHOTONS, QUICK_SEEDS, QUICK_REF_PHOTONS = (10**3, 10**4), 3, 200_000
 SPEED_MIN_PHOTONS = 10**5  # paired speed ratios from runs with at least this many photons
@@ -346,16 +361,21 @@ def pareto(rows) -> dict:
     out = {}
     for case in CASES:
         for qn in case.quantities:
-            pts = [r for r in rows if r["case"] == case.name and r["quantity"] == qn]
-            front = [p for p in pts if not any(
-                q is not p and q["wall_median_s"] <= p["wall_median_s"] and q["rms_rel_err"] <= p["rms_rel_err"]
-                and (q["wall_median_s"] < p["wall_median_s"] or q["rms_rel_err"] < p["rms_rel_err"]) for q in pts)]
-            front.sort(key=lambda p: p["wall_median_s"])
-            for p in pts:
-                p["pareto"] = p in front
-            out[f"{case.name}/{qn}"] = [{"setting": p["setting"], "photons": p["photons"],
-                                         "wall_median_s": p["wall_median_s"], "rms_rel_err": p["rms_rel_err"]}
-                                        for p in front]
+            out.update(fronts([r for r in rows if r["case"] == case.name and r["quantity"] == qn], f"{case.name}/"))
+    return out
+
+
+def fronts(rows, prefix: str = "") -> dict:
+    """Per row["quantity"]: the Pareto frontier (median wall time, RMS error) over every (setting, N),
+    marking each row's "pareto"."""
+    out = {}
+    for qn in dict.fromkeys(r["quantity"] for r in rows):
+        pts = [r for r in rows if r["quantity"] == qn]
+        front = pareto_front(pts)
+        for p in pts:
+            p["pareto"] = any(p is f for f in front)
+        out[prefix + qn] = [{"setting": p["setting"], "photons": p["photons"], "wall_median_s": p["wall_median_s"],
+                             "rms_rel_err": p["rms_rel_err"]} for p in front]
     return out
 
 
@@ -531,53 +551,79 @@ COLORS = {"float32": "tab:blue", "float64": "tab:red"}
 STYLES = {"random": ("-", "o"), "halton": ("--", "s")}
 
 
-def plot(path: Path, rows, refs, title: str) -> None:
+def tally_panels(rows) -> list[dict]:
+    """Part (i)'s panels (one per case and quantity) for `plot`."""
+    out = []
+    for case in CASES:
+        for qn in case.quantities:
+            pts = [r for r in rows if r["case"] == case.name and r["quantity"] == qn]
+            if not pts:
+                continue
+            series = []
+            for st in SETTINGS:
+                s = sorted([r for r in pts if r["setting"] == st.label], key=lambda r: r["photons"])
+                ls, mk = STYLES[st.launch]
+                series.append({"label": st.label, "color": COLORS[st.precision], "ls": ls, "marker": mk,
+                               "x": [r["wall_median_s"] for r in s], "y": [r["rms_rel_err"] for r in s],
+                               "annotate": [f"{r['photons']:.0e}".replace("e+0", "e") for r in s]
+                               if st == Setting("float32", "random") else None})
+            panel = {"title": f"(i) {case.label}: {QUANTITIES[qn].label}",
+                     "xlabel": "wall time of tf.trace [s] (median over seeds, warm)",
+                     "ylabel": "relative error (RMS over seeds)", "series": series,
+                     "pareto": [(r["wall_median_s"], r["rms_rel_err"]) for r in pts if r.get("pareto")],
+                     "hline": (pts[0]["ref_rel_se"], "reference's rel. s.e.")}
+            # N^-1/2 guide through the float64/random point at the largest N (time ~ N at large N)
+            anchor = max((r for r in pts if r["setting"] == BASELINE.label), key=lambda r: r["photons"], default=None)
+            if anchor:
+                t = np.geomspace(min(r["wall_median_s"] for r in pts), max(r["wall_median_s"] for r in pts), 20)
+                panel["guide"] = {"x": t.tolist(), "y": (anchor["rms_rel_err"] * np.sqrt(anchor["wall_median_s"] / t)).tolist(),
+                                  "label": r"$\propto t^{-1/2}$ (N$^{-1/2}$ at fixed rate)"}
+            out.append(panel)
+    return out
+
+
+def plot(path: Path, panels: list[dict], title: str) -> None:
+    """Log-log error against wall time, one panel per spec: "series" (label, color, ls, marker, x, y,
+    annotate), "pareto" points (circled), optional "guide" line and "hline" (value, label)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    panels = [(c, q) for c in CASES for q in c.quantities if any(r["case"] == c.name and r["quantity"] == q for r in rows)]
     ncol = 2
-    nrow = math.ceil(len(panels) / ncol)
+    nrow = max(math.ceil(len(panels) / ncol), 1)
     fig, axes = plt.subplots(nrow, ncol, figsize=(6.2 * ncol, 4.6 * nrow), squeeze=False)
-    for ax, (case, qn) in zip(axes.ravel(), panels):
-        pts = [r for r in rows if r["case"] == case.name and r["quantity"] == qn]
-        for st in SETTINGS:
-            s = sorted([r for r in pts if r["setting"] == st.label], key=lambda r: r["photons"])
-            ls, mk = STYLES[st.launch]
-            ax.plot([r["wall_median_s"] for r in s], [r["rms_rel_err"] for r in s], ls, marker=mk, ms=5,
-                    color=COLORS[st.precision], label=st.label, alpha=0.85)
-            if st == Setting("float32", "random"):
-                for r in s:
-                    ax.annotate(f"{r['photons']:.0e}".replace("e+0", "e"), (r["wall_median_s"], r["rms_rel_err"]),
-                                textcoords="offset points", xytext=(4, 6), fontsize=7, color="0.3")
-        front = [r for r in pts if r.get("pareto")]
-        ax.plot([r["wall_median_s"] for r in front], [r["rms_rel_err"] for r in front], "o", ms=11, mfc="none",
-                mec="k", mew=1.0, label="Pareto frontier")
-        # N^-1/2 guide through the float64/random point at the largest N (time ~ N at large N)
-        anchor = max((r for r in pts if r["setting"] == BASELINE.label), key=lambda r: r["photons"], default=None)
-        if anchor:
-            t = np.geomspace(min(r["wall_median_s"] for r in pts), max(r["wall_median_s"] for r in pts), 20)
-            ax.plot(t, anchor["rms_rel_err"] * np.sqrt(anchor["wall_median_s"] / t), ":", color="0.5",
-                    label=r"$\propto t^{-1/2}$ (N$^{-1/2}$ at fixed rate)")
-        ax.axhline(pts[0]["ref_rel_se"], color="0.6", lw=0.8, ls="-.", label="reference's rel. s.e.")
+    for ax, p in zip(axes.ravel(), panels):
+        for s in p["series"]:
+            ax.plot(s["x"], s["y"], s["ls"], marker=s["marker"], ms=5, color=s["color"], label=s["label"], alpha=0.85)
+            for x, y, text in zip(s["x"], s["y"], s.get("annotate") or ()):
+                ax.annotate(text, (x, y), textcoords="offset points", xytext=(4, 6), fontsize=7, color="0.3")
+        if p["pareto"]:
+            ax.plot(*zip(*p["pareto"]), "o", ms=11, mfc="none", mec="k", mew=1.0, label="Pareto frontier")
+        if p.get("guide"):
+            ax.plot(p["guide"]["x"], p["guide"]["y"], ":", color="0.5", label=p["guide"]["label"])
+        if p.get("hline") and p["hline"][0] > 0:
+            ax.axhline(p["hline"][0], color="0.6", lw=0.8, ls="-.", label=p["hline"][1])
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.yaxis.set_minor_formatter(NullFormatter())
-        ax.set_xlabel("wall time of tf.trace [s] (median over seeds, warm)")
-        ax.set_ylabel("relative error (RMS over seeds)")
-        ax.set_title(f"{case.label}: {QUANTITIES[qn].label}", fontsize=9)
+        for axis in (ax.xaxis, ax.yaxis):  # label 1, 2, 5 x 10^k: most panels span less than two decades
+            axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_locator(LogLocator(base=10, subs=tuple(range(2, 10))))
+            axis.set_minor_formatter(NullFormatter())
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel(p["xlabel"], fontsize=8)
+        ax.set_ylabel(p["ylabel"], fontsize=8)
+        ax.set_title(p["title"], fontsize=8)
         ax.grid(True, which="both", alpha=0.25)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6)
     for ax in axes.ravel()[len(panels):]:
         ax.axis("off")
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.985))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
@@ -596,9 +642,41 @@ def _load_line(info):
     return f"1-minute load average {during} during the timed runs ({info['cores_usable']} cores)"
 
 
+def preface(data: dict, quick: bool) -> str:
+    """The top of RESULTS.md: what the three parts are, and when each was measured."""
+    lr = data.get("last_run")
+    when = {"(i)": data["machine"]["date"] if data.get("runs") else None,
+            "(ii)": data.get("render_part", {}).get("machine", {}).get("date"),
+            "(iii)": data.get("gradient_part", {}).get("machine", {}).get("date")}
+    lines = ["# Run time against error", "",
+             f"`.venv/bin/python experiments/bench/run.py{' --quick' if quick else ''}` measures three parts (README.md "
+             "beside this file): **(i)** rd and rd_r of the paper's tissue (`tf.trace`) against a high-photon reference; "
+             "**(ii)** a rendered stack (`tissuefit.render.render`) against a high-photon reference render; **(iii)** "
+             "gradients (`jax.jacfwd` of `tissuefit.replay.tallies`) against finite-difference references. Each part's "
+             "section says how it was measured and which (setting, N) points are Pareto-optimal in (wall time, error); "
+             "the plot `time_vs_error.png` has one panel per quantity.", "",
+             "Measured: " + "; ".join(f"{k} {v}" if v else f"{k} not in this file" for k, v in when.items()) + "."]
+    srcs = {k: m.get("source") for k, m in (("(i)", data["machine"] if data.get("runs") else {}),
+                                            ("(ii)", data.get("render_part", {}).get("machine", {})),
+                                            ("(iii)", data.get("gradient_part", {}).get("machine", {})))}
+    notes = [m.get("source_note") for m in (data["machine"], data.get("render_part", {}).get("machine", {}),
+                                            data.get("gradient_part", {}).get("machine", {}))]
+    for note in dict.fromkeys(n for n in notes if n):
+        lines[-1] += f" {note}"
+    for k, src in srcs.items():
+        if src:
+            lines[-1] += (f" {k} ran tissuefit sources SHA-256 {src['sha256'][:12]}… (git HEAD {src['git_head']}"
+                          + (f"; modified in the worktree: {', '.join(src['modified_in_worktree'])}"
+                             if src["modified_in_worktree"] else "") + ").")
+    if lr:
+        lines[-1] += (f" Last invocation {lr['date']}: parts {', '.join(lr['parts'])}, {lr['seconds']:.0f} s, "
+                      f"1-minute load {lr['loadavg_start'][0]:.2f} at start and {lr['loadavg_end'][0]:.2f} at end.")
+    return "\n".join(lines)
+
+
 def results_markdown(info, rows, eff, par, refs, compiles, concl, quick) -> str:
     cmd = "experiments/bench/run.py" + (" --quick" if quick else "")
-    lines = ["# Run time against error", ""]
+    lines = ["# (i) rd and rd_r against a high-photon reference", ""]
     if quick:
         lines += ["> **QUICK SMOKE RUN** (`--quick`): tiny photon counts, few seeds, small reference. The numbers "
                   "say the script works, nothing more.", ""]
@@ -723,7 +801,7 @@ def benchmarks_section(info, rows, eff, par, quick) -> str:
         table.append(cells)
     lines += [md_table(("setting", f"wall s at N = {n_key:.0e}, pencil (median / best)",
                         "speed vs float64/random (paired runs)", f"pencil rd: error % at {n_key:.0e} (honesty)",
-                        f"pencil rd_r: error % (honesty)", f"flat rd_r: error % (honesty)",
+                        "pencil rd_r: error % (honesty)", "flat rd_r: error % (honesty)",
                         "FOM vs float64/random, pencil rd", "FOM vs float64/random, flat rd_r"), table), ""]
     lines.append("Pareto frontier (wall time, error): " + "; ".join(
         f"{k}: " + ", ".join(f"{p['setting']} {p['photons']:.0e}" for p in front) for k, front in par.items()) + ".")
@@ -748,31 +826,71 @@ def update_benchmarks(path: Path, section: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+PARTS = ("tallies", "render", "gradients")
+PART_KEYS = {"render": "render_part", "gradients": "gradient_part"}  # their keys in results.json
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="smoke test: N = 1e3, 1e4, 3 seeds, 2e5-photon "
-                        "reference; output in experiments/bench/quick/")
-    parser.add_argument("--out", type=Path, help="folder for RESULTS.md, results.json, time_vs_error.png, "
-                        "reference.npz (default experiments/bench; quick: experiments/bench/quick)")
+    parser.add_argument("--quick", action="store_true", help="smoke test: tiny photon counts, few seeds, small "
+                        "references; output in experiments/bench/quick/")
+    parser.add_argument("--out", type=Path, help="folder for RESULTS.md, results.json, time_vs_error.png and the "
+                        "cached references (default experiments/bench; quick: experiments/bench/quick)")
     parser.add_argument("--benchmarks", type=Path, help="project-wide table to update (default "
                         "experiments/BENCHMARKS.md; quick: <out>/BENCHMARKS.md)")
-    parser.add_argument("--new-reference", action="store_true", help="trace the reference again even if cached")
+    parser.add_argument("--new-reference", action="store_true", help="compute the references again even if cached")
+    parser.add_argument("--only", nargs="+", choices=PARTS, default=list(PARTS), metavar="PART",
+                        help="run only these parts (tallies, render, gradients); the others are carried over "
+                        "from <out>/results.json where it has them")
     parser.add_argument("--render", action="store_true", help="trace nothing: rebuild RESULTS.md, the plot and "
                         "the BENCHMARKS.md section from <out>/results.json (after a change to the analysis)")
     args = parser.parse_args(argv)
     q = args.quick
     args.out = args.out or (HERE / "quick" if q else HERE)
     args.benchmarks = args.benchmarks or (args.out / "BENCHMARKS.md" if q else BENCHMARKS)
+    if args.render:
+        return render(args)
+
+    old = json.loads((args.out / "results.json").read_text()) if (args.out / "results.json").exists() else {}
+    if old and bool(old.get("machine", {}).get("quick")) != q:
+        old = {}  # never mix a quick run's parts with a full run's
+    jnp.zeros(1).block_until_ready()
+    info = machine_info() | {"source": source_state()}  # the package may be edited while this runs
+    made = f"{info['date']} commit {info['git_commit']}{'-dirty' if info['git_dirty'] else ''}"
+    print(f"time-versus-error benchmark{' (quick)' if q else ''}, parts {', '.join(args.only)}: "
+          f"{machine_line(info)}", flush=True)
+    t0 = time.perf_counter()
+    data = dict(old)
+    if "tallies" in args.only:
+        data.update(run_tallies(args, info))
+    elif old.get("runs"):
+        print(f"  part (i): carried over from {args.out / 'results.json'} (measured {old['machine']['date']})", flush=True)
+    for part, module in (("render", render_error), ("gradients", gradient_error)):
+        key = PART_KEYS[part]
+        if part not in args.only:
+            if key in old:
+                print(f"  part {part}: carried over (measured {old[key]['machine']['date']})", flush=True)
+            continue
+        loads = []
+        m = {k: info[k] for k in ("git_commit", "git_dirty", "source")} | {
+            "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"), "loadavg_start": list(os.getloadavg())}
+        data[key] = module.run(args.out, q, args.new_reference, made, loads)
+        data[key]["machine"] = m | {"loadavg_end": list(os.getloadavg()), "loadavg_samples": loads}
+    seconds = time.perf_counter() - t0
+    data["last_run"] = {"date": info["date"], "parts": list(args.only), "seconds": seconds,
+                        "loadavg_start": info["loadavg_start"], "loadavg_end": list(os.getloadavg())}
+    if "machine" not in data:  # no part (i) anywhere: the machine of this run describes the file
+        data["machine"] = info | {"quick": q}
+    return write_outputs(args, data)
+
+
+def run_tallies(args, info) -> dict:
+    """Part (i): rd and rd_r against a high-photon reference (results.json's top-level keys)."""
+    q = args.quick
     ref_photons = {c.name: QUICK_REF_PHOTONS for c in CASES} if q else dict(REF_PHOTONS_FULL)
     counts = {c.name: (QUICK_PHOTONS if q else c.photons) for c in CASES}
     seeds_for = (lambda n: QUICK_SEEDS) if q else (lambda n: SEEDS_FULL[n])
-
-    if args.render:
-        return render(args)
-    jnp.zeros(1).block_until_ready()
-    info = machine_info()
-    print(f"time-versus-error benchmark{' (quick)' if q else ''}: {machine_line(info)}", flush=True)
     t0 = time.perf_counter()
     compiles = [c for case in CASES for c in measure_compiles(case)]
     refs = load_or_make_reference(args.out / "reference.npz", CASES, ref_photons, args.new_reference, info)
@@ -780,6 +898,7 @@ def main(argv=None) -> int:
     runs = []
     for i, case in enumerate(CASES):
         runs += run_case(case, i, refs[case.name], counts[case.name], seeds_for, loads)
+    info = dict(info)
     info["loadavg_end"] = list(os.getloadavg())
     info["loadavg_samples"] = loads
     info["benchmark_seconds"] = time.perf_counter() - t0
@@ -792,11 +911,10 @@ def main(argv=None) -> int:
                         "rd_r_max_cm": RD_R_MAX_CM, "ref_rel_se_max": REF_REL_SE_MAX}
     if any(r["budget_exhausted"] for r in runs):
         print("  WARNING: some runs exhausted their step budget", flush=True)
-
     ref_json = {k: {"settings": v["settings"], "seconds": v["seconds"], "made": v["made"], "reused": v["reused"],
                     **{qn: {"value": np.asarray(v[qn][0]).tolist(), "stderr": np.asarray(v[qn][1]).tolist()}
                        for qn in QUANTITIES if qn in v}} for k, v in refs.items()}
-    return write_outputs(args, info, ref_json, compiles, runs)
+    return {"machine": info, "reference": ref_json, "compile": compiles, "runs": runs}
 
 
 def render(args) -> int:
@@ -805,38 +923,67 @@ def render(args) -> int:
     info = data["machine"]
     info.setdefault("rendered", []).append(datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
     print(f"re-rendering {args.out / 'results.json'} (measured {info['date']})", flush=True)
-    return write_outputs(args, info, data["reference"], data["compile"], data["runs"])
+    return write_outputs(args, data)
 
 
-def write_outputs(args, info, ref_json, compiles, runs) -> int:
-    q = info["quick"]
-    refs = {k: {**v, **{qn: (np.asarray(v[qn]["value"]), np.asarray(v[qn]["stderr"])) for qn in QUANTITIES if qn in v}}
-            for k, v in ref_json.items()}
-    rows = aggregate(runs)
-    par = pareto(rows)
-    eff = efficiency(runs, rows, min_photons=10**4 if not q else 10**3)
-    concl = conclusions(rows, eff, par, refs, q)
+def write_outputs(args, data: dict) -> int:
+    info = data["machine"]
+    q = bool(info.get("quick"))
+    out = {k: data[k] for k in ("machine", "last_run") if k in data}
+    md, panels, section, summary = [], [], [], []
+    if data.get("runs"):  # part (i)
+        ref_json, compiles, runs = data["reference"], data["compile"], data["runs"]
+        refs = {k: {**v, **{qn: (np.asarray(v[qn]["value"]), np.asarray(v[qn]["stderr"])) for qn in QUANTITIES if qn in v}}
+                for k, v in ref_json.items()}
+        rows = aggregate(runs)
+        par = pareto(rows)
+        eff = efficiency(runs, rows, min_photons=10**4 if not q else 10**3)
+        concl = conclusions(rows, eff, par, refs, q)
+        out |= {"reference": ref_json, "compile": compiles, "rows": rows, "efficiency": eff, "pareto": par,
+                "conclusions": concl, "runs": runs}
+        md.append(results_markdown(info, rows, eff, par, refs, compiles, concl, q))
+        panels += tally_panels(rows)
+        section.append(benchmarks_section(info, rows, eff, par, q))
+        summary += [f"(i) {k}: " + ", ".join(f"{p['setting']} N={p['photons']:.0e} ({p['wall_median_s']:.3f} s, "
+                                             f"{100 * p['rms_rel_err']:.3f} %)" for p in front) for k, front in par.items()]
+    for key, module, numeral in (("render_part", render_error, "ii"), ("gradient_part", gradient_error, "iii")):
+        part = data.get(key)
+        if not part:
+            continue
+        rows = module.aggregate(part)
+        par = fronts(rows)
+        out[key] = part | {"rows": rows, "pareto": par}
+        md.append(module.markdown(part, rows, par, md_table, q))
+        panels += (module.panels(rows, par, part["settings"]["size"]) if module is render_error
+                   else module.panels(rows, par))
+        section.append(module.benchmark_lines(part, rows, par, md_table))
+        summary += [f"({numeral}) {k}: " + ", ".join(f"{p['setting']} N={p['photons']:.0e} ({p['wall_median_s']:.3f} s, "
+                                                     f"{100 * p['rms_rel_err']:.3f} %)" for p in front)
+                    for k, front in par.items()]
 
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(
-        {"machine": info, "reference": ref_json, "compile": compiles, "rows": rows, "efficiency": eff,
-         "pareto": par, "conclusions": concl, "runs": runs}, indent=1) + "\n")
-    plot(args.out / "time_vs_error.png", rows, refs,
-         f"tissuefit.trace: relative error vs wall time ({info['cores_usable']} cores, commit "
+    (args.out / "results.json").write_text(json.dumps(out, indent=1) + "\n")
+    plot(args.out / "time_vs_error.png", panels,
+         f"tissuefit: relative error vs wall time ({info['cores_usable']} cores, commit "
          f"{info['git_commit']}{'-dirty' if info['git_dirty'] else ''}, {info['date'][:10]})" + (" QUICK" if q else ""))
-    (args.out / "RESULTS.md").write_text(results_markdown(info, rows, eff, par, refs, compiles, concl, q) + "\n")
-    update_benchmarks(args.benchmarks, benchmarks_section(info, rows, eff, par, q))
-    print(f"done in {info['benchmark_seconds']:.0f} s; load average {info['loadavg_start'][0]:.2f} at start, "
-          f"{info['loadavg_end'][0]:.2f} at end, {_load_line(info)}", flush=True)
+    (args.out / "RESULTS.md").write_text("\n\n".join([preface(data, q)] + md).rstrip("\n") + "\n")
+    text = section[0] if data.get("runs") else "\n".join([MARK_BEGIN, "## Run time against error", "", MARK_END])
+    extra = "\n\n".join(section[1:] if data.get("runs") else section)
+    lr = data.get("last_run")
+    if lr:
+        extra += (f"\n\nLast invocation {lr['date']}: parts {', '.join(lr['parts'])} in {lr['seconds']:.0f} s, 1-minute load "
+                  f"{lr['loadavg_start'][0]:.2f} at start, {lr['loadavg_end'][0]:.2f} at end (each part's load in RESULTS.md).")
+    update_benchmarks(args.benchmarks, text.replace(MARK_END, (extra + "\n\n" if extra else "") + MARK_END))
+    if lr:
+        print(f"done in {lr['seconds']:.0f} s; load average {lr['loadavg_start'][0]:.2f} at start, "
+              f"{lr['loadavg_end'][0]:.2f} at end", flush=True)
     print(f"wrote {args.out / 'RESULTS.md'}, {args.out / 'results.json'}, {args.out / 'time_vs_error.png'}; "
           f"updated {args.benchmarks}", flush=True)
-    print()
-    for line in concl:
+    for line in out.get("conclusions", []):
         print(f"- {line}")
     print("\nPareto frontiers:")
-    for k, front in par.items():
-        print(f"  {k}: " + ", ".join(f"{p['setting']} N={p['photons']:.0e} ({p['wall_median_s']:.3f} s, "
-                                     f"{100 * p['rms_rel_err']:.3f} %)" for p in front))
+    for line in summary:
+        print(f"  {line}")
     return 0
 
 
