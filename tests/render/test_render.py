@@ -215,3 +215,24 @@ def test_shading_matches_the_brute_force_reference(key, kernel):
     np.testing.assert_allclose(got.surface, surface, rtol=2e-4, atol=1e-6 * surface.max())
     np.testing.assert_allclose(got.fluorescence, fluor, rtol=2e-4, atol=1e-6 * fluor.max())
     assert fluor.max() > 0
+
+
+def test_automatic_bandwidth_counts_the_records_of_one_band():
+    """Per-band tracing gives each record one band: the automatic radius must hold the neighbours
+    meant for a band's estimate among that band's records, not among all bands' (where a 21-band
+    render would get 1/21 of them and pixels with no record at all)."""
+    rng = np.random.default_rng(3)
+    n, bands = 42_000, 21
+    xy = rng.uniform(-1.0, 1.0, (n, 2))
+    power = np.zeros((n, bands))
+    power[np.arange(n), rng.integers(0, bands, n)] = rng.uniform(0.5, 1.5, n)
+    queries = rng.uniform(-0.5, 0.5, (500, 2))
+    share = _render.band_share(power)
+    assert share == pytest.approx(1 / bands)
+    assert _render.band_share(np.ones((10, bands))) == 1.0 and _render.band_share(np.ones((10, 1))) == 1.0
+    one_band = xy[power[:, 0] > 0]
+    expect = _render._auto_radius(one_band, queries, 48, 1)
+    got = _render._auto_radius(xy, queries, 48, 1, share)
+    assert got == pytest.approx(expect, rel=0.08)
+    # before: k = 27 among all 42 000 records; now k = 8 (the floor) among a band's 2 000: 2.5 x wider
+    assert got > 2 * _render._auto_radius(xy, queries, 48, 1)

@@ -408,16 +408,33 @@ def neighbour_count(neighbours: int, records: int, dim: int) -> int:
     return int(max(8, min(round(k), records)))
 
 
-def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, seed: int) -> float:
+def band_share(power) -> float:
+    """The mean fraction of the bands a record carries power in: 1 when every record carries all
+    bands (shared paths), about 1 / bands when each photon carries one band (per-band tracing)."""
+    p = np.asarray(power)
+    if p.ndim != 2 or p.shape[0] == 0 or p.shape[1] <= 1:
+        return 1.0
+    carried = np.count_nonzero(p, axis=1)
+    carried = carried[carried > 0]
+    return float(carried.mean() / p.shape[1]) if carried.size else 1.0
+
+
+def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, seed: int, share: float = 1.0) -> float:
     """Median distance from (up to 2048 of) the queries to their k-th nearest record [cm], with k
-    from `neighbour_count` (d = the records' dimension)."""
+    from `neighbour_count` (d = the records' dimension).
+
+    `share` (`band_share`): the fraction of the records that serve one band's estimate. A band's
+    kernel then holds `neighbour_count` of that band's records, so k over all records is
+    neighbour_count(N share) / share: per-band tracing over 21 bands would otherwise leave a
+    band about 1/21 of the neighbours meant (pixels with no record at all at low photon counts)."""
     from scipy.spatial import cKDTree
 
     if records_xyz.shape[0] == 0:
         raise ValueError("render: the photon map is empty (no records); trace more photons")
     rng = np.random.default_rng(seed)
     q = queries[rng.choice(queries.shape[0], min(2048, queries.shape[0]), replace=False)]
-    k = neighbour_count(neighbours, records_xyz.shape[0], records_xyz.shape[1])
+    n = records_xyz.shape[0]
+    k = min(n, round(neighbour_count(neighbours, max(1, round(n * share)), records_xyz.shape[1]) / share))
     dist, _ = cKDTree(records_xyz).query(q, k=[k])
     return float(np.median(dist[:, 0]))
 
@@ -506,7 +523,8 @@ def render(
         surf = surf.select(~surf.converted)
     surf = eqx.tree_at(lambda r: r.power, surf, surf.power * fraction)
     hits_np = np.asarray(hits_xyz)[np.asarray(hit)]
-    r_s = options.surface_radius or _auto_radius(surf.position[:, :2], hits_np[:, :2], options.neighbours, 1)
+    r_s = options.surface_radius or _auto_radius(surf.position[:, :2], hits_np[:, :2], options.neighbours, 1,
+                                                 band_share(surf.power))
     # one extra column of ones counts the records under the kernel (coverage)
     counting = eqx.tree_at(lambda r: r.power, surf, np.concatenate([surf.power, np.ones((surf.count, 1))], axis=1))
     smap = build_surface_map(counting, cell=r_s)
@@ -537,9 +555,10 @@ def render(
         arrivals = eqx.tree_at(lambda r: r.power, arrivals, arrivals.power * fraction)
         emissions = eqx.tree_at(lambda r: r.power, emissions, emissions.power * fraction)
         pts_np = np.asarray(march_pts)[np.asarray(hit)].reshape(-1, 3)
-        r_v = options.volume_radius or _auto_radius(arrivals.position, pts_np, options.neighbours, 2)
+        r_v = options.volume_radius or _auto_radius(arrivals.position, pts_np, options.neighbours, 2,
+                                                    band_share(arrivals.power))
         # emission records are ~10-20x sparser than arrivals: their own bandwidth, from their density
-        r_e = options.volume_radius or (_auto_radius(emissions.position, pts_np, options.neighbours, 3)
+        r_e = options.volume_radius or (_auto_radius(emissions.position, pts_np, options.neighbours, 3, band_share(emissions.power))
                                         if emissions.count else r_v)
         if arrivals.count:
             vmap_arr = build_volume_map(arrivals, cell=r_v)
