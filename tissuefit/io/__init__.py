@@ -50,6 +50,7 @@ from ._preprocess import (
     register_bands as register_bands,
 )
 from ._renderfile import render_stack as render_stack
+from ._synthetic import synthetic_counts as synthetic_counts
 from ._run import (
     MAX_PHOTONS as MAX_PHOTONS,
     RenderSpec as RenderSpec,

@@ -190,6 +190,30 @@ def estimate_shift(fixed: np.ndarray, moving: np.ndarray, *, upsample_factor: in
     return np.asarray(shift, dtype=np.float64), float(math.sqrt(max(0.0, 1.0 - min(1.0, error) ** 2)))
 
 
+REFINEMENTS = 3
+"""Re-estimates of a pair's shift after moving the band by the estimate so far: the Hann window
+pulls a smooth image's correlation peak towards zero shift (about 9 % of a 3 px shift of smooth
+blobs), and each re-estimate measures only what is left (< 0.01 px after three)."""
+
+
+def _refined_shift(fixed_image: np.ndarray, moving: np.ndarray, valid: np.ndarray, space: str,
+                   upsample_factor: int) -> tuple[np.ndarray, float]:
+    """`estimate_shift` of the raw band `moving` onto the prepared `fixed_image`, refined by
+    re-estimating on the band moved by the shift so far (`REFINEMENTS` times at most). The
+    correlation returned is the first estimate's: whether the band matches at all is judged before
+    any moving (moving noise about could only raise it)."""
+    shift, corr = estimate_shift(fixed_image, registration_image(moving, valid, space), upsample_factor=upsample_factor)
+    for _ in range(REFINEMENTS):
+        if not corr or np.hypot(*shift) > min(moving.shape) / 2:
+            break
+        moved = registration_image(shift_band(moving, shift), shift_mask(valid, shift, inside=True), space)
+        rest, _ = estimate_shift(fixed_image, moved, upsample_factor=upsample_factor)
+        shift = shift + rest
+        if np.hypot(*rest) < 1.0 / upsample_factor:
+            break
+    return shift, corr
+
+
 def shift_band(image: np.ndarray, shift, *, order: int = 3) -> np.ndarray:
     """`image` moved by `shift` [row, column] px (cubic spline; edges continued by the nearest pixel,
     which `shift_mask` then marks invalid)."""
@@ -244,7 +268,7 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
     pairs, failed = [], {}
     anchor = live[0]
     for b in live[1:]:
-        shift, corr = estimate_shift(images[anchor], images[b], upsample_factor=upsample_factor)
+        shift, corr = _refined_shift(images[anchor], stack.data[b], stack.valid[b], space, upsample_factor)
         ok = bool(corr >= min_correlation and np.hypot(*shift) <= max_shift)
         pairs.append({"moving": b, "fixed": anchor, "shift_px": [round(float(v), 4) for v in shift],
                       "correlation": round(corr, 4), "ok": ok})
