@@ -100,6 +100,7 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("scene", metavar="SCENE|STACK", help="scene file (.toml, .mci) or stack (.tif, .json)")
     _add_compare_parser(commands)
     _add_fit_parser(commands)
+    _add_synthesize_parser(commands)
     return parser
 
 
@@ -527,6 +528,78 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_synthesize_parser(commands) -> None:
+    syn = commands.add_parser(
+        "synthesize", help="render a scene and record it with a model camera: a synthetic measured stack",
+        description="Render SCENE as `tissuefit render` does and record the stack with a Poisson-Gaussian camera "
+                    "(tissuefit.io.synthetic_counts): scaled to --peak-counts, noise a = --gain, b = --read-noise^2, "
+                    "every band but the middle one shifted by up to --max-shift pixels (the tissue moves between "
+                    "exposures), --dead-band bands black. Writes DIR/measured.tif and its sidecar DIR/measured.json "
+                    "(data_spec/measured.md; scene_file points at SCENE, the shifts and the camera settings are in "
+                    "its provenance): a measurement with known truth for `tissuefit fit`.")
+    syn.add_argument("scene", metavar="SCENE", help="spectral scene file (.toml): the truth")
+    syn.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for measured.tif and measured.json")
+    syn.add_argument("--photons", type=int, metavar="N", help="photons of the render (overrides [render])")
+    syn.add_argument("--seed", type=int, metavar="S", help="PRNG seed of the render (overrides the file's)")
+    syn.add_argument("--noise-seed", type=int, metavar="S", default=0, help="seed of the camera noise and shifts (default 0)")
+    syn.add_argument("--peak-counts", type=float, metavar="C", default=3000.0, help="counts of the brightest sample (default 3000)")
+    syn.add_argument("--gain", type=float, metavar="A", default=1.0, help="noise a [counts per electron] (default 1)")
+    syn.add_argument("--read-noise", type=float, metavar="SD", default=2.0, help="read noise sqrt(b) [counts] (default 2)")
+    syn.add_argument("--max-shift", type=float, metavar="PX", default=0.0, help="largest band-to-band shift per axis [px]")
+    syn.add_argument("--dead-band", type=float, metavar="NM", action="append", default=[],
+                     help="wavelength [nm] of a band that records nothing (repeatable)")
+
+
+def _synthesize(args: argparse.Namespace) -> int:
+    """`tissuefit synthesize SCENE --out DIR`."""
+    run = _render_run(args.scene)
+    args.beta = args.width = args.height = None
+    spec, seed = _resolve_render(run, args)
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    bands = run.scene.tissue.bands
+    wl = np.asarray(bands.wavelengths, np.float64)
+    dead = []
+    for nm in args.dead_band:
+        hit = np.nonzero(np.abs(wl - nm) <= 0.5)[0]
+        if not hit.size:
+            raise _InvalidInput(f"--dead-band {nm:g} nm is not one of the scene's bands; allowed "
+                                f"{', '.join(f'{v:g}' for v in wl)} nm")
+        dead.append(int(hit[0]))
+    if not 0 <= args.noise_seed <= _MAX_SEED:
+        raise _InvalidInput(f"--noise-seed = {args.noise_seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    try:
+        result = render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
+                        key=jax.random.key(seed), options=spec.options, trace_options=run.options,
+                        spectral=run.spectral, observation_filter=spec.observation_filter)
+        counts, shifts = io.synthetic_counts(result.stack, rng=np.random.default_rng(args.noise_seed),
+                                             peak_counts=args.peak_counts, gain=args.gain, read_noise=args.read_noise,
+                                             max_shift_px=args.max_shift, dead_bands=dead)
+    except ValueError as err:
+        raise _InvalidInput(f"{args.scene}: {err}") from None
+    out.mkdir(parents=True, exist_ok=True)
+    scene_path = Path(args.scene).resolve()
+    try:
+        scene_file = str(scene_path.relative_to(out.resolve()))
+    except ValueError:
+        scene_file = str(scene_path)
+    camera = {"peak_counts": args.peak_counts, "gain": args.gain, "read_noise": args.read_noise,
+              "max_shift_px": args.max_shift, "noise_seed": int(args.noise_seed), "dead_bands": dead,
+              "shifts_px": shifts.tolist()}
+    stack = io.make_stack(counts, wavelengths=wl, widths=np.asarray(bands.widths, np.float64), kind="measured",
+                          units="counts", noise={"a": args.gain, "b": args.read_noise**2}, scene_file=scene_file,
+                          provenance={"synthesized_by": f"tissuefit {_version()} synthesize", "scene": str(args.scene),
+                                      "render_seed": int(seed), "photons": int(spec.photons), "camera": camera,
+                                      "truth": io.scene_to_dict(run)})
+    io.write_stack(out / "measured.tif", stack)
+    print(f"{run.name}: {spec.photons} photons, seed {seed}; camera peak {args.peak_counts:g} counts, noise a "
+          f"{args.gain:g}, b {args.read_noise**2:g}; shifts up to {np.abs(shifts).max():.2f} px"
+          + (f"; dead bands {', '.join(f'{wl[b]:g} nm' for b in dead)}" if dead else "")
+          + f"\n  wrote {out / 'measured.tif'}, {out / 'measured.json'}", flush=True)
+    return 0
+
+
 def _add_fit_parser(commands) -> None:
     fit = commands.add_parser(
         "fit", help="fit tissue parameters of a scene to a measured stack",
@@ -543,6 +616,9 @@ def _add_fit_parser(commands) -> None:
     fit.add_argument("--free", metavar="NAME[,NAME...]", required=True,
                      help="parameters to fit: layer<i>.<field> or region<j>.<field> (mua, mus, g, a, b, c_ppix, "
                           "yield_ppix, blood_fraction, ...) or a bare field naming one medium")
+    fit.add_argument("--init", metavar="NAME=VALUE[,...]", default="",
+                     help="initial guess other than the scene's values (names as for --free; e.g. "
+                          "blood_saturation=0.5)")
     fit.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for fit.json and fit.png")
     fit.add_argument("--photons", type=int, metavar="N", help="photons per render (overrides [render])")
     fit.add_argument("--seed", type=int, metavar="S", help=f"the fit's PRNG seed (default {DEFAULT_SEED})")
@@ -554,9 +630,22 @@ def _add_fit_parser(commands) -> None:
     fit.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
 
 
+def _fit_progress(parameters, scale: bool):
+    """A `fit(progress=)` callback printing each re-trace's values and chi^2 on stderr."""
+    def show(entry: dict) -> None:
+        values = ", ".join(f"{v:.4g}" for v in entry["values"])
+        print(f"  re-trace {entry['retrace']}: ({values}); chi2 {entry['chi2_start']:.4g} -> {entry['chi2_end']:.4g}, "
+              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, {entry['seconds']:.1f} s",
+              file=sys.stderr, flush=True)
+
+    names = [p.name for p in parameters] + (["scale"] if scale else [])
+    print(f"fitting ({', '.join(names)})", file=sys.stderr, flush=True)
+    return show
+
+
 def _fit(args: argparse.Namespace) -> int:
     """`tissuefit fit MEASURED --scene SCENE --free ... --out DIR`."""
-    from .fit import fit, fit_plot_png, fit_report, parameters_from_names
+    from .fit import fit, fit_plot_png, fit_report, initial_values, parameters_from_names
 
     out: Path = args.out
     if out.exists() and not out.is_dir():
@@ -570,17 +659,17 @@ def _fit(args: argparse.Namespace) -> int:
         photons = spec.photons if args.photons is None else check_positive_int("--photons", args.photons,
                                                                               high=io.MAX_PHOTONS)
         check_positive_int("--max-retraces", args.max_retraces, high=100)
-        tissue = run.scene.tissue
+        tissue = initial_values(run.scene.tissue, args.init)
         parameters = parameters_from_names(tissue, [n for n in args.free.split(",") if n.strip()])
         measured = io.prepare_measured(io.read_measured(args.measured), register=not args.no_register)
         result = fit(measured, tissue, parameters, endoscope=spec.endoscope, spectrum=run.scene.spectrum,
                      photons=photons, key=jax.random.key(seed), options=spec.options,
                      observation_filter=spec.observation_filter, scale=args.scale, solver=args.solver,
-                     max_retraces=args.max_retraces)
+                     max_retraces=args.max_retraces, progress=None if args.json else _fit_progress(parameters, args.scale))
     except ValueError as err:
         raise _InvalidInput(f"{args.measured}: {err}") from None
     report = fit_report(result, extra={"scene": io.scene_to_dict(run), "measured": str(args.measured),
-                                       "seed": int(seed), "free": [p.name for p in parameters],
+                                       "seed": int(seed), "free": [p.name for p in parameters], "init": args.init,
                                        "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}})
     picture = fit_plot_png(result)
     out.mkdir(parents=True, exist_ok=True)
@@ -603,7 +692,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return {"simulate": _simulate, "render": _render, "check": _check, "compare": _compare,
-                "fit": _fit}[args.command](args)
+                "fit": _fit, "synthesize": _synthesize}[args.command](args)
     except _InvalidInput as err:
         print(f"tissuefit: error: {err}", file=sys.stderr)
         return EXIT_INVALID

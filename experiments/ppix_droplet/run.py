@@ -96,8 +96,13 @@ def main(argv=None):
         io.write_stack(out / "measured.tif", stack)
         measured = io.prepare_measured(io.read_measured(out / "measured.json"), reference_band=ref)
         t_gen = time.perf_counter() - t0
+        print(f"seed {seed}: measurement {t_gen:.1f} s, dead bands {(~measured.good).nonzero()[0].tolist()}", flush=True)
         result = tf.fit(measured, sample(bands, **GUESS), PARAMETERS, endoscope=endo, photons=args.photons,
-                        key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces)
+                        key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
+                        progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
+                                                 f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
+                                                 f"ESS {h['ess_min']:.3f}, moved {h['max_move_sigma']:.3g} sigma, "
+                                                 f"{h['seconds']:.1f} s", flush=True))
         got = dict(zip(result.names, zip(result.values, result.uncertainties)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_measurement": t_gen,
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),

@@ -3,7 +3,11 @@ parameters, residuals weighted by the noise model, optimistix solves on the repl
 re-traces, uncertainties from the Jacobian, and the report."""
 
 from ._fit import SOLVERS as SOLVERS, fit as fit
-from ._names import parameters_from_names as parameters_from_names, scene_parameters as scene_parameters
+from ._names import (
+    initial_values as initial_values,
+    parameters_from_names as parameters_from_names,
+    scene_parameters as scene_parameters,
+)
 from ._parameters import TRANSFORMS as TRANSFORMS, FitParameter as FitParameter
 from ._result import (
     FitResult as FitResult,

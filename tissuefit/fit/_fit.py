@@ -27,16 +27,16 @@ pixels, so this per-pixel term understates the simulation's effect on the parame
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..render import Floodlight, RenderOptions, render
+from ..render import RenderOptions, render
 from ._parameters import FitParameter, Layout
 from ._result import FitResult
 
@@ -169,9 +169,16 @@ def fit(
         x0.append(np.zeros(1))
     x = jnp.asarray(np.concatenate(x0), jnp.float64)
 
+    frozen = {"options": options}
+
     def do_render(t, k):
-        return render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=options,
-                      illumination=illumination, observation_filter=observation_filter, replay=True)
+        out = render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=frozen["options"],
+                     illumination=illumination, observation_filter=observation_filter, replay=True)
+        if frozen["options"].surface_radius is None:
+            # one bandwidth for every render of the fit: the model's blur must not change between
+            # re-traces (and a fixed map cell lets the renders share compiled code)
+            frozen["options"] = dataclasses.replace(frozen["options"], surface_radius=float(out.surface_radius))
+        return out
 
     t_start = time.perf_counter()
     rel_var = np.zeros(bands.num_bands)
@@ -300,7 +307,7 @@ def fit(
                   "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
                   "simulation_variance": "two renders at the initial guess, relative variance per band" if
-                  simulation_variance else None},
+                  simulation_variance else None, "surface_radius_cm": frozen["options"].surface_radius},
     )
 
 

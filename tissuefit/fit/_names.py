@@ -16,7 +16,7 @@ SHORT_NAMES = {"protoporphyrin_ix": "ppix"}
 
 
 def _optics_fields(optics, get):
-    """[(field, where, transform, units)] of one LayerOptics; `get(tissue)` returns the optics."""
+    """[(field, where, transform, units[, bounds])] of one LayerOptics; `get(tissue)` returns the optics."""
     out = []
     n_const = n_tab = 0
     for i, ab in enumerate(optics.absorbers):
@@ -28,8 +28,8 @@ def _optics_fields(optics, get):
             n_const += 1
             out.append((name, lambda t, at=at: at(t).mua, "log", "1/cm"))
         elif isinstance(ab, Blood):
-            out.append(("blood_fraction", lambda t, at=at: at(t).fraction, "log", ""))
-            out.append(("blood_saturation", lambda t, at=at: at(t).saturation, "identity", ""))
+            out.append(("blood_fraction", lambda t, at=at: at(t).fraction, "log", "", (0.0, 1.0)))
+            out.append(("blood_saturation", lambda t, at=at: at(t).saturation, "identity", "", (0.0, 1.0)))
         elif isinstance(ab, Fluorophore):
             names = {ab.name} | ({SHORT_NAMES[ab.name]} if ab.name in SHORT_NAMES else set())
             for nm in sorted(names):
@@ -53,11 +53,11 @@ def scene_parameters(tissue) -> dict[str, FitParameter]:
     """Every parameter `--free` can name in `tissue`, by its full name ("layer0.mua", ...)."""
     table = {}
     for i, layer in enumerate(tissue.layers):
-        for field, where, transform, units in _optics_fields(layer, lambda t, i=i: t.layers[i]):
-            table[f"layer{i}.{field}"] = FitParameter(f"layer{i}.{field}", where, transform, units=units)
+        for field, where, transform, units, *bounds in _optics_fields(layer, lambda t, i=i: t.layers[i]):
+            table[f"layer{i}.{field}"] = FitParameter(f"layer{i}.{field}", where, transform, *bounds, units=units)
     for j, region in enumerate(tissue.regions):
-        for field, where, transform, units in _optics_fields(region.optics, lambda t, j=j: t.regions[j].optics):
-            table[f"region{j}.{field}"] = FitParameter(f"region{j}.{field}", where, transform, units=units)
+        for field, where, transform, units, *bounds in _optics_fields(region.optics, lambda t, j=j: t.regions[j].optics):
+            table[f"region{j}.{field}"] = FitParameter(f"region{j}.{field}", where, transform, *bounds, units=units)
     return table
 
 
@@ -83,3 +83,28 @@ def parameters_from_names(tissue, names) -> list[FitParameter]:
     if len(set(full)) != len(full):
         raise ValueError(f"--free names a parameter twice: {full}")
     return out
+
+
+def initial_values(tissue, assignments: str):
+    """`tissue` with "name=value[,name=value...]" set (the command line's `--init`: an initial guess
+    other than the scene's values; names as for `--free`, a value fills the whole leaf)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    for item in (a.strip() for a in assignments.split(",")):
+        if not item:
+            continue
+        name, sep, text = item.partition("=")
+        if not sep:
+            raise ValueError(f"--init {item!r}: expected name=value")
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError(f"--init {name.strip()}={text!r}: the value is not a number") from None
+        (p,) = parameters_from_names(tissue, [name])
+        leaf = p.where(tissue)
+        lo, hi = p.interval
+        if not lo < value < hi and not (p.transform == "identity" and p.bounds is None):
+            raise ValueError(f"--init {p.name} = {value:g} {p.units}".rstrip() + f"; allowed ({lo:g}, {hi:g})")
+        tissue = eqx.tree_at(p.where, tissue, jnp.full(jnp.shape(leaf), value, jnp.float64))
+    return tissue
