@@ -635,7 +635,8 @@ def _fit_progress(parameters, scale: bool):
     def show(entry: dict) -> None:
         values = ", ".join(f"{v:.4g}" for v in entry["values"])
         print(f"  re-trace {entry['retrace']}: ({values}); chi2 {entry['chi2_start']:.4g} -> {entry['chi2_end']:.4g}, "
-              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, {entry['seconds']:.1f} s",
+              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, moved {entry['max_move_sigma']:.2g} sigma, "
+              f"{entry['seconds']:.1f} s",
               file=sys.stderr, flush=True)
 
     names = [p.name for p in parameters] + (["scale"] if scale else [])

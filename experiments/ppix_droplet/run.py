@@ -7,11 +7,13 @@ mus'(λ) = a (λ/500 nm)^-b (b fixed), anisotropy g, and PpIX (concentration c, 
 fluorescence fixes c φ, the absorption c alone; c φ is reported) filling the view (the droplet
 spreads over the field). Lit by the endoscope's white cone lights; 400–720 nm, 16 nm bands.
 
-Pipeline per seed: render the truth (photons x `--measured-factor`, key 10^6 + seed), scale to
-camera counts (peak `--counts`), Poisson + Gaussian read noise (b = 4 counts^2), shift every band
-but the reference one by a random integer (-3..3, -3..3) pixels, black out one band; write it as a
-measured stack (data_spec/measured.md) and read it back; `prepare_measured` (dead band, registration);
-fit mua, a, g, c with a free scale (the counts' absolute calibration is unknown).
+Pipeline per seed: render the truth (photons x `--measured-factor`, key 10^6 + seed), record it
+with `tissuefit.io.synthetic_counts` (peak `--counts`, Poisson + Gaussian read noise b = 4 counts^2,
+every band but the reference one shifted by up to 3 px per axis, sub-pixel, one band dead); write it
+as a measured stack (data_spec/measured.md) and read it back; `prepare_measured` (dead band,
+registration); fit mua, a, g, c with a free scale (the counts' absolute calibration is unknown).
+Truth and fit use one fixed kernel bandwidth (`--surface-radius`): the automatic one would make the
+measurement, rendered with more photons, sharper than the fit's renders (a bias of its own).
 
     .venv/bin/python experiments/ppix_droplet/run.py --size 16 --photons 20000 --seeds 1
     (the issue's size: --size 128 --seeds 5)
@@ -56,18 +58,6 @@ PARAMETERS = [
 ]
 
 
-def measure(truth_stack: np.ndarray, rng: np.random.Generator, counts: float, dead: int, ref: int):
-    """Camera counts: Poisson(signal) + N(0, 4), bands shifted by integers up to 3 px, `dead` black."""
-    signal = truth_stack / truth_stack.max() * counts
-    raw = rng.poisson(signal).astype(np.float64) + rng.normal(0.0, 2.0, signal.shape)
-    shifts = rng.integers(-3, 4, size=(raw.shape[0], 2))
-    shifts[ref] = 0
-    for k in range(raw.shape[0]):
-        raw[k] = np.roll(raw[k], tuple(shifts[k]), axis=(0, 1))
-    raw[dead] = rng.normal(0.0, 2.0, raw[dead].shape)
-    return raw, shifts
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=16)
@@ -76,11 +66,13 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--counts", type=float, default=4000.0)
     ap.add_argument("--max-retraces", type=int, default=6)
+    ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
+    ap.add_argument("--simulation-keys", type=int, default=2)
     ap.add_argument("--out", type=Path, default=HERE / "out")
     args = ap.parse_args(argv)
     bands = tf.BandGrid([400.0 + 16.0 * k for k in range(21)], 16.0)
     endo = rd.Endoscope(beta_deg=0.0, distance=1.0, fov_deg=25.0, width=args.size, height=args.size)
-    options = rd.RenderOptions(specular_deg=0.0, fluorescence="surface")
+    options = rd.RenderOptions(specular_deg=0.0, fluorescence="surface", surface_radius=args.surface_radius)
     ref, dead = 10, 3
     rows = []
     for seed in range(args.seeds):
@@ -88,7 +80,8 @@ def main(argv=None):
         t0 = time.perf_counter()
         truth = rd.render(sample(bands, **TRUTH), endo, photons=args.photons * args.measured_factor,
                           key=jax.random.key(1_000_000 + seed), options=options).stack
-        raw, shifts = measure(truth, rng, args.counts, dead, ref)
+        raw, shifts = io.synthetic_counts(truth, rng=rng, peak_counts=args.counts, read_noise=2.0, max_shift_px=3.0,
+                                          reference_band=ref, dead_bands=[dead])
         out = args.out / f"seed{seed}"
         out.mkdir(parents=True, exist_ok=True)
         stack = io.make_stack(raw, wavelengths=bands.wavelengths, widths=bands.widths, kind="measured",
@@ -99,6 +92,7 @@ def main(argv=None):
         print(f"seed {seed}: measurement {t_gen:.1f} s, dead bands {(~measured.good).nonzero()[0].tolist()}", flush=True)
         result = tf.fit(measured, sample(bands, **GUESS), PARAMETERS, endoscope=endo, photons=args.photons,
                         key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
+                        simulation_keys=args.simulation_keys,
                         progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
                                                  f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
                                                  f"ESS {h['ess_min']:.3f}, moved {h['max_move_sigma']:.3g} sigma, "
@@ -118,6 +112,7 @@ def main(argv=None):
         write_fit_plot(result, out / "fit.png")
         print(json.dumps(row, indent=1), flush=True)
     summary = {"size": args.size, "bands": 21, "photons": args.photons, "measured_photons": args.photons * args.measured_factor,
+               "surface_radius_cm": args.surface_radius, "max_retraces": args.max_retraces,
                "seeds": rows, "tissuefit_version": io._report.tissuefit_version() if hasattr(io, "_report") else None}
     io.write_json(args.out / "summary.json", summary)
 
