@@ -105,3 +105,16 @@ def test_scene_parameter_names_and_their_errors():
         parameters_from_names(t, ["mua"])
     with pytest.raises(ValueError, match="not a parameter of this scene; available: layer0.mua, "):
         parameters_from_names(t, ["mus_prime"])
+
+
+def test_the_outer_loop_tells_jitter_from_drift():
+    from tissuefit.fit._fit import _oscillating
+
+    std = np.array([0.01, 0.01])
+    drift = [[0.0, 0.0], [0.1, 0.0], [0.2, 0.01], [0.3, -0.01]]  # the first parameter still moving one way
+    jitter = [[0.3, 0.0], [0.35, 0.02], [0.31, -0.01], [0.34, 0.01]]  # both back and forth
+    settled = [[0.3, 0.0], [0.301, 0.02], [0.302, -0.01], [0.303, 0.01]]  # one creeping by < 0.5 sd in all
+    assert not _oscillating(drift, std, 0.5)
+    assert _oscillating(jitter, std, 0.5)
+    assert _oscillating(settled, std, 0.5)
+    assert not _oscillating(jitter[:2], std, 0.5)  # too few re-traces to tell

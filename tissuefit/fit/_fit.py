@@ -15,7 +15,10 @@ Outer loop (re-traces) around an inner optimistix solve on the replayed render:
 4. Stop when no parameter moved by more than `tol_sigma` of its standard error (or relative `rtol`)
    between two re-traces (default 0.5: with common random numbers, re-traces at nearby points still
    move the optimum by a few tenths of a standard error; the demo's saturation jittered by 0.37);
-   then a last render at the optimum gives the Jacobian.
+   Or stop when the last three re-traces took full steps and every parameter only went back and
+   forth (net change under half the distance travelled) or ended within `tol_sigma`: the optimum then jitters with the trace
+   point's Monte Carlo noise, which does not shrink with the statistical errors; their mean is the
+   estimate. Then a last render at the optimum gives the Jacobian.
 
 Uncertainties: cov_x = (J^T J)^-1 at the optimum, J = d r / d x, mapped to the parameters' units
 by the transforms' derivatives, times max(1, chi^2 / dof) (the Birge ratio: a model or noise
@@ -218,6 +221,7 @@ def fit(
     converged, reason = False, f"not converged after {max_retraces} re-traces (parameters still moving)"
     std_x = None
     rendered = None
+    trail, full = [np.asarray(x)], []  # x before the first and after every re-trace; whether its step was full
     for it in range(max_retraces):
         t_it = time.perf_counter()
         current = layout.tissue(tissue, x)
@@ -257,8 +261,18 @@ def fit(
         x = x_next
         if progress is not None:
             progress(history[-1])
+        trail.append(np.asarray(x))
+        full.append(t_step == 1.0)
         if t_step == 1.0 and np.all((moved < tol_sigma) | (dx < 1e-9)):
             converged, reason = True, f"parameters moved < {tol_sigma} standard errors between re-traces"
+            break
+        if len(full) >= OSCILLATION_WINDOW and all(full[-OSCILLATION_WINDOW:]) and _oscillating(
+                trail[-(OSCILLATION_WINDOW + 1):], std_x, tol_sigma):
+            # the re-traces only jitter about the optimum (Monte Carlo noise of the trace point):
+            # their mean is the estimate; the final render's keys measure that noise
+            x = jnp.asarray(np.mean(trail[-OSCILLATION_WINDOW:], axis=0))
+            converged, reason = True, (f"parameters oscillate between the last {OSCILLATION_WINDOW} re-traces "
+                                       "without drifting (Monte Carlo jitter); their mean is the estimate")
             break
     # final render at the optimum: the Jacobian, residuals and metrics there
     seconds_fit = time.perf_counter() - t_start
@@ -320,6 +334,23 @@ def _result_message(result) -> str:
         return str(optx.RESULTS[result])  # pragma: no cover - depends on optimistix's enumeration API
     except Exception:  # noqa: BLE001
         return "inner solve stopped: " + ("max_steps reached" if result == optx.RESULTS.max_steps_reached else "failed")
+
+
+OSCILLATION_WINDOW = 3
+"""Re-traces over which `fit` tests for jitter without drift."""
+
+
+def _oscillating(points, std, tol: float) -> bool:
+    """True when every parameter, over `points` (unconstrained vectors, one per re-trace), either
+    went back and forth (net change under half the distance travelled: the optimum moving with the
+    trace point's Monte Carlo noise, not a drift towards one) or ended within `tol` x `std` of
+    where it started."""
+    xs = np.asarray(points, np.float64)
+    if xs.shape[0] < 3:
+        return False
+    net, path = np.abs(xs[-1] - xs[0]), np.abs(np.diff(xs, axis=0)).sum(axis=0)
+    std = np.where(np.isfinite(std), std, 0.0)
+    return bool(np.all((net <= 0.5 * path) | (net < tol * std)))
 
 
 def _std_from_jac(jac: np.ndarray) -> np.ndarray:
