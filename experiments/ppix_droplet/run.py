@@ -68,6 +68,7 @@ def main(argv=None):
     ap.add_argument("--max-retraces", type=int, default=6)
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
     ap.add_argument("--simulation-keys", type=int, default=2)
+    ap.add_argument("--free", default="mua,a,g,c_ppix", help="parameters to fit (the others stay at the truth)")
     ap.add_argument("--out", type=Path, default=HERE / "out")
     args = ap.parse_args(argv)
     bands = tf.BandGrid([400.0 + 16.0 * k for k in range(21)], 16.0)
@@ -90,7 +91,9 @@ def main(argv=None):
         measured = io.prepare_measured(io.read_measured(out / "measured.json"), reference_band=ref)
         t_gen = time.perf_counter() - t0
         print(f"seed {seed}: measurement {t_gen:.1f} s, dead bands {(~measured.good).nonzero()[0].tolist()}", flush=True)
-        result = tf.fit(measured, sample(bands, **GUESS), PARAMETERS, endoscope=endo, photons=args.photons,
+        free = [p for p in PARAMETERS if p.name in args.free.split(",")]
+        start = {k: (GUESS[k] if (k if k != "c" else "c_ppix") in args.free.split(",") else TRUTH[k]) for k in GUESS}
+        result = tf.fit(measured, sample(bands, **start), free, endoscope=endo, photons=args.photons,
                         key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
                         simulation_keys=args.simulation_keys,
                         progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
@@ -102,17 +105,19 @@ def main(argv=None):
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):
+            if name not in got:
+                continue
             v, e = got[name]
             row[name] = {"true": true, "value": v, "uncertainty": e, "rel_error": v / true - 1,
                          "pull": (v - true) / e if e > 0 else None}
-        v, e = got["c_ppix"]
+        v, e = got.get("c_ppix", (TRUTH["c"], 0.0))
         row["c_yield"] = {"true": TRUTH["c"] * YIELD, "value": v * YIELD, "uncertainty": e * YIELD}
         rows.append(row)
         write_fit_report(result, out / "fit.json", extra={"truth": TRUTH, "guess": GUESS, "shifts_px": shifts.tolist()})
         write_fit_plot(result, out / "fit.png")
         print(json.dumps(row, indent=1), flush=True)
     summary = {"size": args.size, "bands": 21, "photons": args.photons, "measured_photons": args.photons * args.measured_factor,
-               "surface_radius_cm": args.surface_radius, "max_retraces": args.max_retraces,
+               "surface_radius_cm": args.surface_radius, "max_retraces": args.max_retraces, "free": args.free,
                "seeds": rows, "tissuefit_version": io._report.tissuefit_version() if hasattr(io, "_report") else None}
     io.write_json(args.out / "summary.json", summary)
 
