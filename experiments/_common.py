@@ -77,3 +77,15 @@ def pareto_front(points: list[dict], time_key: str = "wall_median_s", error_key:
         q is not p and q[time_key] <= p[time_key] and q[error_key] <= p[error_key]
         and (q[time_key] < p[time_key] or q[error_key] < p[error_key]) for q in points)]
     return sorted(front, key=lambda p: p[time_key])
+
+
+def pareto_sentences(fronts: dict) -> list[str]:
+    """One sentence per quantity: "Pareto frontier <quantity>: <setting> at N = 1e+04, 1e+05; ...."
+    from {quantity: pareto_front(...)} (points with "setting" and "photons")."""
+    lines = []
+    for quantity, front in fronts.items():
+        by = {}
+        for p in front:
+            by.setdefault(p["setting"], []).append(f"{p['photons']:.0e}")
+        lines.append(f"Pareto frontier {quantity}: " + "; ".join(f"{s} at N = {', '.join(ns)}" for s, ns in by.items()) + ".")
+    return lines

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import tissuefit as tf  # noqa: I001
+from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 import jax
 import jax.numpy as jnp
 from tissuefit import replay
@@ -278,11 +279,7 @@ def conclusions(part: dict, rows: list[dict], pareto: dict) -> list[str]:
             f"{a['float32']['wall_median_s'] / a['float64']['wall_median_s']:.2f}). The FD reference's relative s.e. is "
             f"{100 * ref_se:.3f} %, so the float64 error is {resolved} 2 x the reference's; its truncation estimate "
             f"(D(2h) − D(h)) / 3 is {100 * trunc:.4f} % (± {100 * trunc_se:.4f} %).")
-    for qn, front in pareto.items():
-        by = {}
-        for p in front:
-            by.setdefault(p["setting"], []).append(f"{p['photons']:.0e}")
-        lines.append(f"Pareto frontier {qn}: " + "; ".join(f"{s} at N = {', '.join(ns)}" for s, ns in by.items()) + ".")
+    lines += pareto_sentences(pareto)
     return lines
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import tissuefit as tf  # noqa: I001
+from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 import jax
 from tissuefit.render import Endoscope, RenderOptions
 
@@ -198,11 +199,7 @@ def conclusions(part: dict, rows: list[dict], pareto: dict) -> list[str]:
                      "shrink with N, trading noise for bias)."
                      + (" The smallest error is within 2x the reference's noise, so at this N the reference limits "
                         "the comparison." if at[0]["rms_rel_err"] < 2 * noise[g] else ""))
-    for g, front in pareto.items():
-        by = {}
-        for p in front:
-            by.setdefault(p["setting"], []).append(f"{p['photons']:.0e}")
-        lines.append(f"Pareto frontier {g}: " + "; ".join(f"{s} at N = {', '.join(ns)}" for s, ns in by.items()) + ".")
+    lines += pareto_sentences(pareto)
     return lines
 
 

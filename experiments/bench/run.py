@@ -69,7 +69,7 @@ def _sibling(name: str):
 sys.path[:0] = [str(HERE), str(HERE.parent)]
 import gradient_error  # noqa: E402  (part iii, beside this file)
 import render_error  # noqa: E402  (part ii)
-from _common import pareto_front, source_state  # noqa: E402  (experiments/_common.py)
+from _common import pareto_front, pareto_sentences, source_state  # noqa: E402  (experiments/_common.py)
 
 _throughput = _sibling("throughput")
 machine_info = _throughput.machine_info  # date, CPU, cores, RAM, jax/jaxlib, commit (+dirty), loadavg_start
@@ -533,11 +533,7 @@ def conclusions(rows, eff, par, refs, quick) -> list[str]:
                  "twenty departs by more than 2 s.e. by chance, and variance ratios from few runs are skewed "
                  "(chi-square-like), so a single flagged line is weak evidence.")
     # Pareto
-    for k, front in par.items():
-        by = {}
-        for p in front:
-            by.setdefault(p["setting"], []).append(f"{p['photons']:.0e}")
-        lines.append(f"Pareto frontier {k}: " + "; ".join(f"{s} at N = {', '.join(ns)}" for s, ns in by.items()) + ".")
+    lines += pareto_sentences(par)
     if quick:
         lines.insert(0, "QUICK SMOKE RUN: tiny N and few seeds; these sentences are not conclusions.")
     return lines
