@@ -306,19 +306,40 @@ def _render_run(path: str) -> io.SpectralRun:
     return run
 
 
-def _resolve_render(run: io.SpectralRun, args: argparse.Namespace) -> tuple[io.RenderSpec, int]:
-    """The render settings with the command line's overrides applied, and the seed (checked)."""
-    spec = run.render or io.RenderSpec()
-    seed = next((s for s in (args.seed, spec.seed, run.seed) if s is not None), DEFAULT_SEED)
+def _out_folder(out: Path) -> Path:
+    """`--out`: refused when it exists and is not a folder (it is created only when writing)."""
+    if out.exists() and not out.is_dir():
+        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    return out
+
+
+def _render_seed(seed: int | None, spec: io.RenderSpec, run: io.SpectralRun) -> int:
+    """The command line's seed, else the file's render.seed, then run.seed, else DEFAULT_SEED (checked)."""
+    seed = next((s for s in (seed, spec.seed, run.seed) if s is not None), DEFAULT_SEED)
     if not 0 <= seed <= _MAX_SEED:
         raise _InvalidInput(f"--seed = {seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    return seed
+
+
+def _render_scene(run: io.SpectralRun, spec: io.RenderSpec, seed: int, **extra):
+    """`render` of the scene file's tissue, lights and settings (`extra`: chunks, progress)."""
+    return render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
+                  key=jax.random.key(seed), options=spec.options, trace_options=run.options,
+                  spectral=run.spectral, observation_filter=spec.observation_filter, **extra)
+
+
+def _resolve_render(run: io.SpectralRun, args: argparse.Namespace) -> tuple[io.RenderSpec, int]:
+    """The render settings with the command line's overrides applied (`--photons`, and `--beta`,
+    `--width`, `--height` where the command has them), and the seed (checked)."""
+    spec = run.render or io.RenderSpec()
+    seed = _render_seed(args.seed, spec, run)
     try:
         geometry = {}
-        if args.beta is not None:
+        if getattr(args, "beta", None) is not None:
             check_range("--beta", args.beta, unit="deg", low=0.0, high=90.0, high_open=True)
             geometry["beta_deg"] = float(args.beta)
         for name in ("width", "height"):
-            if getattr(args, name) is not None:
+            if getattr(args, name, None) is not None:
                 geometry[name] = check_positive_int(f"--{name}", getattr(args, name), high=8192)
         changes = {"seed": seed}
         if args.photons is not None:
@@ -360,9 +381,7 @@ def _render_summary(sidecar: dict, files: list[Path]) -> str:
 def _render(args: argparse.Namespace) -> int:
     run = _render_run(args.scene)
     spec, seed = _resolve_render(run, args)
-    out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    out = _out_folder(args.out)
     from tqdm import tqdm
 
     chunks = int(min(100, max(1, spec.photons // RENDER_PHOTONS_PER_CHUNK)))
@@ -373,10 +392,7 @@ def _render(args: argparse.Namespace) -> int:
             bar.update(done - bar.n)
 
         try:
-            result = render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
-                            key=jax.random.key(seed), options=spec.options, trace_options=run.options,
-                            spectral=run.spectral, observation_filter=spec.observation_filter,
-                            chunks=chunks, progress=progress)
+            result = _render_scene(run, spec, seed, chunks=chunks, progress=progress)
         except ValueError as err:
             raise _InvalidInput(f"{args.scene}: {err}") from None
     seconds = time.perf_counter() - start
@@ -492,9 +508,7 @@ def _compare_table(report: dict, files: list[Path]) -> str:
 
 def _compare(args: argparse.Namespace) -> int:
     """`tissuefit compare SIM MEASURED --out DIR`: report and panel of a simulated against a measured stack."""
-    out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    out = _out_folder(args.out)
     try:
         sim = io.read_stack(args.sim)
         measured = io.read_measured(args.measured)
@@ -553,11 +567,8 @@ def _add_synthesize_parser(commands) -> None:
 def _synthesize(args: argparse.Namespace) -> int:
     """`tissuefit synthesize SCENE --out DIR`."""
     run = _render_run(args.scene)
-    args.beta = args.width = args.height = None
     spec, seed = _resolve_render(run, args)
-    out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    out = _out_folder(args.out)
     bands = run.scene.tissue.bands
     wl = np.asarray(bands.wavelengths, np.float64)
     dead = []
@@ -570,9 +581,7 @@ def _synthesize(args: argparse.Namespace) -> int:
     if not 0 <= args.noise_seed <= _MAX_SEED:
         raise _InvalidInput(f"--noise-seed = {args.noise_seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
     try:
-        result = render(run.scene.tissue, spec.endoscope, spectrum=run.scene.spectrum, photons=spec.photons,
-                        key=jax.random.key(seed), options=spec.options, trace_options=run.options,
-                        spectral=run.spectral, observation_filter=spec.observation_filter)
+        result = _render_scene(run, spec, seed)
         counts, shifts = io.synthetic_counts(result.stack, rng=np.random.default_rng(args.noise_seed),
                                              peak_counts=args.peak_counts, gain=args.gain, read_noise=args.read_noise,
                                              max_shift_px=args.max_shift, dead_bands=dead)
@@ -648,14 +657,10 @@ def _fit(args: argparse.Namespace) -> int:
     """`tissuefit fit MEASURED --scene SCENE --free ... --out DIR`."""
     from .fit import fit, fit_plot_png, fit_report, initial_values, parameters_from_names
 
-    out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise _InvalidInput(f"--out {out}: exists and is not a folder")
+    out = _out_folder(args.out)
     run = _render_run(args.scene)
     spec = run.render or io.RenderSpec()
-    seed = next((s for s in (args.seed, spec.seed, run.seed) if s is not None), DEFAULT_SEED)
-    if not 0 <= seed <= _MAX_SEED:
-        raise _InvalidInput(f"--seed = {seed} is out of range; allowed [0, {_MAX_SEED}] (integer)")
+    seed = _render_seed(args.seed, spec, run)
     try:
         photons = spec.photons if args.photons is None else check_positive_int("--photons", args.photons,
                                                                               high=io.MAX_PHOTONS)

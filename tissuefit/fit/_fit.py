@@ -14,11 +14,12 @@ Outer loop (re-traces) around an inner optimistix solve on the replayed render:
    (g: 0.03, the replay being first order in g).
 4. Stop when no parameter moved by more than `tol_sigma` of its standard error (or relative `rtol`)
    between two re-traces (default 0.5: with common random numbers, re-traces at nearby points still
-   move the optimum by a few tenths of a standard error; the demo's saturation jittered by 0.37);
+   move the optimum by a few tenths of a standard error; the demo's saturation jittered by 0.37).
    Or stop when the last three re-traces took full steps and every parameter only went back and
-   forth (net change under half the distance travelled) or ended within `tol_sigma`: the optimum then jitters with the trace
-   point's Monte Carlo noise, which does not shrink with the statistical errors; their mean is the
-   estimate. Then a last render at the optimum gives the Jacobian.
+   forth (net change under half the distance travelled) or ended within `tol_sigma`: the optimum
+   then jitters with the trace point's Monte Carlo noise, which does not shrink with the
+   statistical errors; their mean is the estimate. Then a last render at the optimum gives the
+   Jacobian.
 
 Uncertainties: cov_x = (J^T J)^-1 at the optimum, J = d r / d x, mapped to the parameters' units
 by the transforms' derivatives, times max(1, chi^2 / dof) (the Birge ratio: a model or noise
@@ -174,15 +175,14 @@ def fit(
         x0.append(np.zeros(1))
     x = jnp.asarray(np.concatenate(x0), jnp.float64)
 
-    frozen = {"options": options}
-
     def do_render(t, k):
-        out = render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=frozen["options"],
+        nonlocal options
+        out = render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=options,
                      illumination=illumination, observation_filter=observation_filter, replay=True)
-        if frozen["options"].surface_radius is None:
+        if options.surface_radius is None:
             # one bandwidth for every render of the fit: the model's blur must not change between
             # re-traces (and a fixed map cell lets the renders share compiled code)
-            frozen["options"] = dataclasses.replace(frozen["options"], surface_radius=float(out.surface_radius))
+            options = dataclasses.replace(options, surface_radius=float(out.surface_radius))
         return out
 
     t_start = time.perf_counter()
@@ -323,7 +323,7 @@ def fit(
                   "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
                   "simulation_variance": "two renders at the initial guess, relative variance per band" if
-                  simulation_variance else None, "surface_radius_cm": frozen["options"].surface_radius},
+                  simulation_variance else None, "surface_radius_cm": options.surface_radius},
     )
 
 

@@ -9,6 +9,9 @@ with fields `mua` (ConstantAbsorption; `mua1`, ... for a second one), `blood_fra
 
 from __future__ import annotations
 
+import equinox as eqx
+import jax.numpy as jnp
+
 from ..scene import Blood, ConstantAbsorption, ConstantScattering, Fluorophore, PowerLawScattering, TabulatedAbsorber
 from ._parameters import FitParameter
 
@@ -88,9 +91,6 @@ def parameters_from_names(tissue, names) -> list[FitParameter]:
 def initial_values(tissue, assignments: str):
     """`tissue` with "name=value[,name=value...]" set (the command line's `--init`: an initial guess
     other than the scene's values; names as for `--free`, a value fills the whole leaf)."""
-    import equinox as eqx
-    import jax.numpy as jnp
-
     for item in (a.strip() for a in assignments.split(",")):
         if not item:
             continue
