@@ -27,46 +27,68 @@ def scene(**kw):
     return tf.SpectralScene(tf.SpectralTissue([optics(**kw)], n=[1.37], thickness=[0.2], bands=BANDS), spectrum=VIOLET)
 
 
-@pytest.fixture(scope="module")
-def traced():
-    return replay.trace_records(scene(), key=jax.random.key(11), photons=6000)
+MODES = ("per_band", "shared")
+
+
+@pytest.fixture(scope="module", params=MODES)
+def traced(request):
+    return replay.trace_records(scene(), key=jax.random.key(11), photons=6000,
+                                spectral=tf.SpectralOptions(mode=request.param))
 
 
 def test_replay_at_the_traced_tissue_is_the_trace(traced):
     rep = traced
-    assert rep.result.mode == "per_band"  # fluorescence replay traces per band
     t = scene().tissue
-    np.testing.assert_allclose(np.asarray(rep.rd(t)), rep.result.rd, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(rep.rd_fluor(t)), rep.result.rd_fluor, rtol=1e-12, atol=1e-15)
+    # shared paths: the trace's tallies sum band weights evaluated in float32 lanes, the replay in float64
+    tol = dict(rtol=1e-12, atol=1e-15) if rep.result.mode == "per_band" else dict(rtol=2e-6, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(rep.rd(t)), rep.result.rd, **tol)
+    np.testing.assert_allclose(np.asarray(rep.rd_fluor(t)), rep.result.rd_fluor, **tol)
     np.testing.assert_allclose(np.asarray(rep.effective_sample_size(t)), 1.0, rtol=1e-12)
     rec = rep.replay.records
     assert rec.converted.any() and np.all(rec.conversions[rec.converted] >= 1)
     assert np.all(rec.path0[~rec.converted] == 0) and np.all(rec.path0[rec.converted].sum(1) > 0)
+    if rep.result.mode == "shared":  # the excitation spectrum each conversion mixed, largest entry 1
+        assert rec.band0 is None
+        np.testing.assert_allclose(rec.exc0[rec.converted].max(1), 1.0, rtol=1e-6)
+        assert np.all(rec.exc0[~rec.converted] == 0)
+    else:
+        assert rec.exc0 is None
     # re-absorbed and re-emitted fluorescence is reported, not silently replayed as if converted once
     assert 0 <= rep.untracked[2] < 0.02 and rep.untracked[0] == 0
 
 
 def test_log_weight_derivative_is_minus_the_path_length(traced):
-    """d log P / d mua_b = -(L of the segment carried in band b): the emission segment's, plus the
-    excitation segment's for a converted record (mu_conv does not depend on the background mua)."""
+    """d log P_j / d mua_b = -(L of the segment carried in band b): the emission segment's, plus, for a
+    converted record, the excitation segment's in band b (per band), or on shared paths that
+    segment's L times band b's share of the emission into j, e_b mu_bj / sum_i e_i mu_ij
+    (mu_conv does not depend on the background mua)."""
     rep = traced.replay
     rec = rep.records
     band = rec.band
+    onehot = np.arange(3)[None, :] == band[:, None]
 
     def log_power(mua):
         p = rep.power(scene(mua=mua).tissue)
         return jnp.log(p[jnp.arange(rec.count), band])
 
     got = np.asarray(jax.jacfwd(log_power)(jnp.asarray([5.0, 4.5, 4.0])))  # [records, 3]
-    want = -rec.path[:, :1] * (np.arange(3)[None, :] == band[:, None])
-    want = want - np.where(rec.converted[:, None], rec.path0[:, :1] * (np.arange(3)[None, :] == rec.band0[:, None]), 0.0)
+    want = -rec.path[:, :1] * onehot
+    if rec.exc0 is None:
+        share = np.arange(3)[None, :] == rec.band0[:, None]
+    else:
+        t = scene().tissue
+        mua, mus, _ = (np.asarray(a) for a in t.properties())
+        mu = np.asarray(t.conversion())[0] * (mua + mus)[0][:, None]  # [from, into]
+        mix = rec.exc0 * mu[:, band].T  # [records, from]: e_i mu_i,band
+        share = mix / np.where(mix.sum(1, keepdims=True) > 0, mix.sum(1, keepdims=True), 1.0)
+    want = want - np.where(rec.converted[:, None], rec.path0[:, :1] * share, 0.0)
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
 
 
-def _pmc(seeds, photons, param):
+def _pmc(seeds, photons, param, mode="auto"):
     rows = []
     for s in seeds:
-        rep = replay.trace_records(scene(), key=jax.random.key(s), photons=photons)
+        rep = replay.trace_records(scene(), key=jax.random.key(s), photons=photons, spectral=tf.SpectralOptions(mode=mode))
         f = {"c": lambda x: rep.rd_fluor(scene(c=x).tissue)[2],
              "mua": lambda x: rep.rd(scene(mua=jnp.asarray([x, 4.5, 4.0])).tissue).sum()}[param]
         rows.append(float(jax.grad(f)(jnp.asarray({"c": 100.0, "mua": 5.0}[param]))))
@@ -87,18 +109,18 @@ def _fd(seeds, photons, param, h):
     return (a - b) / (2 * h), math.hypot(ea, eb) / (2 * h)
 
 
-@pytest.mark.parametrize("param, h", [("c", 20.0), ("mua", 1.5)])
-def test_escaping_fluorescence_gradient_matches_finite_differences(param, h):
-    """d (escaping fluorescence) / d c_PpIX and d rd / d mua at 400-416 nm: replayed records vs central
-    differences of independent runs."""
-    got, e_got = _pmc(range(4), 20_000, param)
+@pytest.mark.parametrize("param, h, mode", [("c", 20.0, "per_band"), ("c", 20.0, "shared"), ("mua", 1.5, "shared")])
+def test_escaping_fluorescence_gradient_matches_finite_differences(param, h, mode):
+    """d (escaping fluorescence) / d c_PpIX and d rd / d mua at 400-416 nm: replayed records (traced
+    per band or on shared paths) vs central differences of independent runs."""
+    got, e_got = _pmc(range(4), 20_000, param, mode)
     fd, e_fd = _fd(range(4), 40_000, param, h)
     assert abs(fd) > 3 * e_fd  # resolved
     assert abs(got - fd) <= K * math.hypot(e_got, e_fd), (got, e_got, fd, e_fd)
 
 
 def test_reweighting_matches_a_retrace_and_reports_the_sample_size(key):
-    """Exact in the concentration: rd_fluor traced at c = 20 and replayed to c = 30 agrees with a trace
+    """Exact in the concentration: rd_fluor traced at c = 20 (shared paths) and replayed to c = 30 agrees with a trace
     at c = 30 (a change the re-trace resolves); the effective sample size falls away from c = 20."""
     rep = replay.trace_records(scene(c=20.0), key=key, photons=40_000)
     moved = scene(c=30.0).tissue
@@ -158,9 +180,6 @@ def test_errors_name_what_is_wrong(key):
     with pytest.raises(ValueError, match="RecordSpec\\(replay=True\\)"):
         plain = tf.trace_spectral(scene(), key=key, photons=100, records=tf.RecordSpec(surface=100)).surface_records
         replay.RecordReplay(plain, scene().tissue)
-    with pytest.raises(ValueError, match="shared paths do not keep"):
-        tf.trace_spectral(scene(), key=key, photons=10, spectral=tf.SpectralOptions(mode="shared"),
-                          records=tf.RecordSpec(surface=10, replay=True))
     rep = replay.trace_records(scene(), key=key, photons=6000)
     other = tf.SpectralTissue([optics(), optics()], n=[1.37, 1.37], thickness=[0.1, 0.1], bands=BANDS)
     with pytest.raises(ValueError, match="replay needs the same structure"):

@@ -59,8 +59,12 @@ def test_replay_statistics_only_when_records_ask_for_them():
     bands = tf.BandGrid([400.0, 640.0], 16.0)
     optics = tf.LayerOptics([tf.ConstantAbsorption(1.0), tf.protoporphyrin_ix(bands)], tf.ConstantScattering(50.0, 0.8))
     scene = tf.SpectralScene(tf.SpectralTissue([optics], n=[1.4], thickness=[0.1], bands=bands))
-    fields = ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")
-    for records, present in ((tf.RecordSpec(surface=10), False), (tf.RecordSpec(surface=10, replay=True), True)):
-        config = resolve_config(scene, tf.TraceOptions(), tf.SpectralOptions(), records)
-        lanes = idle_lanes(8, config, jnp.float32)
-        assert all((getattr(lanes, f) is not None) == present for f in fields), records
+    common = ("score", "path0", "hits0", "score0", "conv_medium", "conversions")
+    own = {"per_band": "band0", "shared": "exc0"}  # the excitation band, or band weights on shared paths
+    for mode in ("per_band", "shared"):
+        for records, present in ((tf.RecordSpec(surface=10), False), (tf.RecordSpec(surface=10, replay=True), True)):
+            config = resolve_config(scene, tf.TraceOptions(), tf.SpectralOptions(mode=mode), records)
+            lanes = idle_lanes(8, config, jnp.float32)
+            assert all((getattr(lanes, f) is not None) == present for f in common + (own[mode],)), (mode, records)
+            other = own["shared" if mode == "per_band" else "per_band"]
+            assert getattr(lanes, other) is None, (mode, records)

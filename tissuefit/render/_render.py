@@ -471,8 +471,8 @@ def render(
     - `observation_filter`: the camera's filter transmission (e.g. `LongpassFilter`, or a
       `TabulatedSpectrum` of values in [0, 1]); every term is multiplied by its band average.
     - `replay`: also return `RenderResult.replay`, the stack as a differentiable function of the
-      tissue (`RenderReplay`); the records then carry replay statistics and fluorescent scenes are
-      traced per band.
+      tissue (`RenderReplay`); the records then carry replay statistics (shared paths where the
+      scene allows them, fluorescent scenes included).
     Returns a `RenderResult`.
     """
     if not isinstance(tissue, SpectralTissue):

@@ -6,10 +6,12 @@ path held fixed (every distance and direction under stop_gradient), its power at
     P(theta) = P0 * prod_m (mus_mb / mus0_mb)^(n_m) * exp(-(mut_mb - mut0_mb) L_m) * exp(S_m (g_mb - g0_mb))
 
 for the band b the segment was carried in, with n_m, L_m and S_m (the sum of d log p_HG/dg over the
-scatterings) per medium m. A converted record multiplies the same factor of its excitation segment
-(band i, statistics path0, hits0, score0) and the ratio of the conversion coefficient
+scatterings) per medium m. A converted record traced per band multiplies the same factor of its
+excitation segment (band i, statistics path0, hits0, score0) and the ratio of the conversion coefficient
 mu_conv[m, i, j] = P[m, i, j] * mut_mi (= phi * mua_f,i * emission share; the interaction density
-times the conversion probability) at its conversion medium. The mua, mus and concentration factors
+times the conversion probability) at its conversion medium. On shared paths the emission mixed
+every band the photon carried: the record keeps its band weights on arrival (`exc0`) and the factor
+is the ratio of the mixtures (`RecordReplay.conversion_ratio`). The mua, mus and concentration factors
 are exact likelihood ratios, so reweighting to other values of those is exact (unbiased); the g
 factor is exact to first order (the Henyey–Greenstein ratio of a path is not a function of a
 per-medium sum), which gives the exact derivative at theta0 and a reweighting whose error grows as
@@ -94,33 +96,64 @@ class RecordReplay(eqx.Module):
         props0 = tuple(jax.lax.stop_gradient(jnp.asarray(a, jnp.float64)) for a in self.traced.properties())
         f = lambda a: None if a is None else jnp.asarray(a, jnp.float64)  # noqa: E731
         out = segment_log_ratio(f(rec.path), f(rec.hits), f(rec.score), props, props0)
-        if rec.path0 is not None:
+        if rec.path0 is not None and rec.exc0 is None:  # per band (shared: in `conversion_ratio`)
             exc = segment_log_ratio(f(rec.path0), f(rec.hits0), f(rec.score0), props, props0)
             exc = jnp.take_along_axis(exc, jnp.asarray(rec.band0, jnp.int32)[:, None], axis=1)
             out = out + jnp.where(jnp.asarray(rec.conversions)[:, None] > 0, exc, 0.0)
         return out
 
-    def conversion_ratio(self, tissue: SpectralTissue) -> Float[Array, " n"]:
-        """mu_conv(tissue) / mu_conv(traced) at each converted record's conversion (1 elsewhere)."""
-        rec = self.records
-        if rec.conversions is None:
-            return jnp.ones(rec.count)
+    def conversion_ratio(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
+        """The conversion's factor of each converted record's power (1 elsewhere), per band.
 
-        def coefficient(t, stop):
+        Per band: mu_conv(tissue) / mu_conv(traced) at the record's conversion (its excitation
+        segment's ratio is in `log_ratio`). Shared paths: the emission in band j mixed every
+        excitation band i the photon carried, with its band weights e_i on arrival (`exc0`):
+
+            sum_i e_i R_i mu_conv[m, i, j](tissue) / sum_i e_i mu_conv[m, i, j](traced)
+
+        with R_i the excitation segment's weight ratio in band i (`segment_log_ratio`).
+        """
+        rec = self.records
+        nb = self.traced.bands.num_bands
+        if rec.conversions is None:
+            return jnp.ones((rec.count, nb))
+
+        def coefficient(t, stop):  # mu_conv [media, bands (from), bands (into)]
             mua, mus, _ = (jnp.asarray(a, jnp.float64) for a in t.properties())
             mu = jnp.asarray(t.conversion(), jnp.float64) * (mua + mus)[:, :, None]
-            mu = jax.lax.stop_gradient(mu) if stop else mu
-            return mu[jnp.asarray(rec.conv_medium), jnp.asarray(rec.band0), jnp.asarray(rec.band)]
+            return jax.lax.stop_gradient(mu) if stop else mu
 
         mu, mu0 = coefficient(tissue, False), coefficient(self.traced, True)
-        conv = jnp.asarray(rec.conversions) > 0
-        return jnp.where(conv & (mu0 > 0), mu / jnp.where(mu0 > 0, mu0, 1.0), 1.0)
+        conv = (jnp.asarray(rec.conversions) > 0)[:, None]
+        medium = jnp.asarray(rec.conv_medium)
+        if rec.exc0 is None:
+            band0, band = jnp.asarray(rec.band0), jnp.asarray(rec.band)
+            new, old = mu[medium, band0, band], mu0[medium, band0, band]
+            return jnp.where(conv & (old > 0)[:, None], (new / jnp.where(old > 0, old, 1.0))[:, None], 1.0)
+        props = tuple(jnp.asarray(a, jnp.float64) for a in tissue.properties())
+        props0 = tuple(jax.lax.stop_gradient(jnp.asarray(a, jnp.float64)) for a in self.traced.properties())
+        f = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
+        log_r = segment_log_ratio(f(rec.path0), f(rec.hits0), f(rec.score0), props, props0)  # [n, bands (from)]
+        exc = f(rec.exc0)
+        # sum_i e_i R_i mu[i, j], scaled by the largest exponent per row (neither overflow nor underflow)
+        log_er = jnp.where(exc > 0, jnp.log(jnp.where(exc > 0, exc, 1.0)) + log_r, -jnp.inf)
+        shift = jax.lax.stop_gradient(jnp.max(jnp.where(conv, log_er, 0.0), axis=1, keepdims=True))
+        shift = jnp.where(jnp.isfinite(shift), shift, 0.0)
+        er = jnp.where(conv, jnp.exp(log_er - shift), 0.0)
+        num = jnp.zeros((rec.count, nb))
+        den = jnp.zeros((rec.count, nb))
+        for m in range(mu.shape[0]):
+            at = (medium == m)[:, None]
+            num = jnp.where(at, er @ mu[m], num)
+            den = jnp.where(at, exc @ mu0[m], den)
+        ok = conv & (den > 0)
+        return jnp.where(ok, num / jnp.where(ok, den, 1.0) * jnp.exp(shift), 1.0)
 
     def power(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
         """The records' powers [n, bands] at `tissue` (per launched photon, as `PhotonRecords.power`)."""
         p0 = jnp.asarray(self.records.power, jnp.float64)
         lr = jnp.where(p0 != 0, self.log_ratio(tissue), 0.0)
-        return p0 * jnp.exp(lr) * self.conversion_ratio(tissue)[:, None]
+        return p0 * jnp.exp(lr) * self.conversion_ratio(tissue)
 
     def effective_sample_size(self, tissue: SpectralTissue, mask=None) -> Float[Array, " bands"]:
         """Kish's effective sample size of the reweighted records relative to the traced ones, per

@@ -136,7 +136,8 @@ def trace_records(scene: SpectralScene, *, key, photons: int, options: TraceOpti
                   spectral: SpectralOptions = SpectralOptions(), **trace_kwargs) -> EscapeReplay:
     """Trace `scene` keeping every escaping photon as a replayable record; returns an `EscapeReplay`.
 
-    Fluorescent scenes are traced per band (`RecordSpec.replay`). Outside `jax.jit`; the tissue's
+    Shared paths where the scene allows them (`spectral.mode`), fluorescent scenes included: a
+    converted record keeps the band weights its emission mixed. Outside `jax.jit`; the tissue's
     values are read with stop_gradient, so this may be called inside a function being differentiated.
     """
     if not isinstance(scene, SpectralScene):

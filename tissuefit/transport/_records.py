@@ -44,9 +44,8 @@ class RecordSpec(eqx.Module):
       (default off; the renderer turns it on).
     - `replay`: records carry what replaying them at other parameters needs (`tissuefit.replay`):
       the Henyey–Greenstein score per medium and, for converted photons, the statistics of the
-      excitation segment before their conversion (path, hits, score, band, medium). Fluorescent
-      scenes are then traced per band (shared paths do not keep a converted photon's excitation
-      spectrum). Default off.
+      excitation segment before their conversion (path, hits, score, medium, and its band per band
+      or, on shared paths, the band weights the photon arrived at the conversion with). Default off.
     The paper keeps 300 000 of each. Records are off unless a consumer asks for them.
     """
 
@@ -88,7 +87,9 @@ class PhotonRecords(eqx.Module):
     - `count`: valid rows; `overflow`: records dropped because the buffer was full.
     With `RecordSpec.replay` (else None): `score` [capacity, media], the sum of d log p_HG/dg over
     the segment's scatterings per medium; for converted records the excitation segment before the
-    last conversion: `path0`, `hits0`, `score0` [capacity, media], its band `band0`, the medium
+    last conversion: `path0`, `hits0`, `score0` [capacity, media], its band `band0` (per-band
+    traces) or, on shared paths, `exc0` [capacity, bands], the band weights the photon arrived at
+    the conversion with (largest 1; the excitation spectrum its emission mixes), the medium
     `conv_medium` the conversion happened in, and `conversions`, how many conversions the photon
     made (a record with more than one has an excitation history older than `path0`; see
     `tissuefit.replay`).
@@ -110,6 +111,7 @@ class PhotonRecords(eqx.Module):
     hits0: Float[Array, "capacity media"] | None = None
     score0: Float[Array, "capacity media"] | None = None
     band0: Int[Array, " capacity"] | None = None
+    exc0: Float[Array, "capacity bands"] | None = None
     conv_medium: Int[Array, " capacity"] | None = None
     conversions: Int[Array, " capacity"] | None = None
 
@@ -136,5 +138,5 @@ class PhotonRecords(eqx.Module):
         )
 
 
-REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")
+REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "exc0", "conv_medium", "conversions")
 """Record fields kept with `RecordSpec.replay` (None otherwise)."""

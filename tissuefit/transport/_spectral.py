@@ -146,12 +146,6 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
     props = _active_properties(scene, active)
     mode = spectral.mode
     voxels = any(r.num_media > 1 for r in scene.tissue.regions)
-    replay_fluor = records.replay and records.any and scene.tissue.fluorescent
-    if mode == "shared" and replay_fluor:
-        raise ValueError("records.replay with fluorescence: shared paths do not keep a converted photon's "
-                         "excitation spectrum; use spectral.mode 'per_band' or 'auto'")
-    if mode == "auto" and replay_fluor:
-        mode = "per_band"  # replaying conversions needs each photon's excitation band and segment
     if mode == "auto":
         # Shared paths whenever they can serve the scene: measured 4-11x more efficient per band
         # than per-band tracing even for blood spectra (mut differing by 67 % across bands;
@@ -262,13 +256,17 @@ def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) ->
         band = np.asarray(config.active)[band] if count else band
     else:
         power[np.arange(count), band] = take(buf.w).astype(np.float64) / photons
+    extra = {k: (lambda a: None if a is None else (a.astype(np.float64) if a.dtype.kind == "f" else a))(take(getattr(buf, k)))
+             for k in REPLAY_FIELDS}
+    if extra["exc0"] is not None:  # shared paths: from the active slots to the band grid
+        exc0 = np.zeros((count, config.num_bands))
+        exc0[:, np.asarray(config.active)] = extra["exc0"]
+        extra["exc0"] = exc0
     return PhotonRecords(
         position=take(buf.position).astype(np.float64), direction=take(buf.direction).astype(np.float64),
         power=power, band=band, converted=take(buf.converted), photon=take(buf.photon),
         count=count, overflow=int(np.sum(buf.overflow)), emission=take(buf.emission),
-        path=take(buf.path).astype(np.float64), hits=take(buf.hits).astype(np.float64),
-        **{k: (lambda a: None if a is None else (a.astype(np.float64) if a.dtype.kind == "f" else a))(take(getattr(buf, k)))
-           for k in REPLAY_FIELDS},
+        path=take(buf.path).astype(np.float64), hits=take(buf.hits).astype(np.float64), **extra,
     )
 
 

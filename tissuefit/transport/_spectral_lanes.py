@@ -73,7 +73,7 @@ def _record_rows(lanes: _Lanes, position, direction, band, emission=False) -> di
     return dict(position=position, direction=direction, w=lanes.w, spectrum=lanes.spectrum, path=lanes.path,
                 hits=lanes.hits, band=band, converted=lanes.converted, photon=lanes.pid,
                 emission=jnp.full(lanes.w.shape, emission), score=lanes.score, path0=lanes.path0,
-                hits0=lanes.hits0, score0=lanes.score0, band0=lanes.band0, conv_medium=lanes.conv_medium,
+                hits0=lanes.hits0, score0=lanes.score0, band0=lanes.band0, exc0=lanes.exc0, conv_medium=lanes.conv_medium,
                 conversions=lanes.conversions)
 
 
@@ -130,7 +130,7 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         path=None if lanes.path is None else jnp.zeros_like(lanes.path),
         hits=None if lanes.hits is None else jnp.zeros_like(lanes.hits),
         **{k: None if getattr(lanes, k) is None else jnp.zeros_like(getattr(lanes, k))
-           for k in ("score", "path0", "hits0", "score0", "band0", "conv_medium", "conversions")},
+           for k in ("score", "path0", "hits0", "score0", "band0", "exc0", "conv_medium", "conversions")},
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
@@ -245,13 +245,13 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     new_band = lanes.band
     w_new = jnp.where(interact, keep, w)
     if config.fluorescent and shared:
-        state = (convert, spectrum, new_band, w_new, path, hits, acc.flux)
+        state = (convert, spectrum, new_band, w_new, path, hits, acc.flux, lanes.exc0)
         state = jax.lax.while_loop(
             lambda st: jnp.any(st[0]),
             lambda st: _convert_batch(st, lanes._replace(path=path), medium, config, xi_e),
             state,
         )
-        _, spectrum, new_band, w_new, path, hits, acc_upd["flux"] = state
+        _, spectrum, new_band, w_new, path, hits, acc_upd["flux"], exc0 = state
     heat = jnp.where(interact, w - w * albedo - (w * p_c if config.fluorescent and not shared else 0.0), 0.0)
     if config.fluorescent and not shared:
         # a conversion closes the photon's segment in its old band (booked here) and starts one in
@@ -282,10 +282,14 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
             c2 = convert[:, None]
             replay = dict(
                 path0=jnp.where(c2, path_in, lanes.path0), hits0=jnp.where(c2, lanes.hits, lanes.hits0),
-                score0=jnp.where(c2, score, lanes.score0), band0=jnp.where(convert, lanes.band, lanes.band0),
+                score0=jnp.where(c2, score, lanes.score0),
                 conv_medium=jnp.where(convert, med, lanes.conv_medium).astype(jnp.int32),
                 conversions=lanes.conversions + convert.astype(jnp.int32),
             )
+            if shared:
+                replay["exc0"] = exc0  # set by the conversion loop for the converting lanes only
+            else:
+                replay["band0"] = jnp.where(convert, lanes.band, lanes.band0)
             score = jnp.where(c2, 0.0, score)
         replay["score"] = score
     sx, sy, sz = phys.spin(lanes.ux, lanes.uy, uz, cos_s, xi_b)

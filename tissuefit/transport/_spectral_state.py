@@ -37,13 +37,13 @@ class SpectralConfig(eqx.Module):
 
     @property
     def replay(self) -> bool:
-        """Lanes carry HG scores (and, fluorescent per band, the excitation segment) for replay."""
+        """Lanes carry HG scores (and, fluorescent, the excitation segment) for replay."""
         return self.records.replay and self.records.any
 
     @property
     def history(self) -> bool:
-        """Lanes keep the excitation segment of their last conversion (replay, per band, fluorescent)."""
-        return self.replay and self.fluorescent and not self.shared
+        """Lanes keep the excitation segment of their last conversion (replay, fluorescent)."""
+        return self.replay and self.fluorescent
 
     @property
     def track_path(self) -> bool:
@@ -67,7 +67,8 @@ class _Lanes(NamedTuple):
     path0: Array | None  # history: the excitation segment before the last conversion [lanes, media]
     hits0: Array | None
     score0: Array | None
-    band0: Array | None  # history: the band of that segment
+    band0: Array | None  # history, per band: the band of that segment
+    exc0: Array | None  # history, shared: its band weights arriving at the conversion [lanes, slots]
     conv_medium: Array | None  # history: the medium of the last conversion
     conversions: Array | None  # history: conversions so far
     sleft: Array
@@ -95,6 +96,7 @@ class _Buffer(NamedTuple):
     hits0: Array | None
     score0: Array | None
     band0: Array | None
+    exc0: Array | None
     conv_medium: Array | None
     conversions: Array | None
     band: Array
@@ -186,9 +188,12 @@ def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
 
 def _replay_fields(n: int, config: SpectralConfig, dtype) -> dict:
     per_medium = lambda on: jnp.zeros((n, config.num_media), dtype) if on else None  # noqa: E731
-    index = lambda: jnp.zeros(n, jnp.int32) if config.history else None  # noqa: E731
+    index = lambda on=True: jnp.zeros(n, jnp.int32) if config.history and on else None  # noqa: E731
+    history_shared = config.history and config.shared
     return dict(score=per_medium(config.replay), path0=per_medium(config.history), hits0=per_medium(config.history),
-                score0=per_medium(config.history), band0=index(), conv_medium=index(), conversions=index())
+                score0=per_medium(config.history), band0=index(not config.shared),
+                exc0=jnp.zeros((n, config.slots), dtype) if history_shared else None,
+                conv_medium=index(), conversions=index())
 
 
 def _empty_buffer(capacity: int, config: SpectralConfig, dtype) -> _Buffer:

@@ -71,7 +71,7 @@ def _emission_shared(lanes: _Lanes, medium: _Medium, config: SpectralConfig, row
     into = emitted / q
     out = scaled * medium.psum.reshape(-1, nb)[:, act][med] / q
     new_carrier = _sample_index(jnp.cumsum(into, axis=1), take(xi_e))
-    return into, new_carrier, out
+    return into, new_carrier, out, w
 
 
 def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralConfig, xi_e):
@@ -79,12 +79,14 @@ def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralCon
 
     The converted photon restarts its path statistics: spectrum = emitted weight / q (scaled to a
     largest entry of 1, the scale in W), a new carrier slot drawn from it. Its emitted weight is booked into each band, and the weight it
-    took out of each band as a first conversion or a re-conversion."""
-    pending, spectrum, band, w, path, hits, flux = state
+    took out of each band as a first conversion or a re-conversion. With `exc0` in the state
+    (replay), each converting lane's band weights on arrival (largest 1) are kept there: the
+    excitation spectrum its emission mixes, which replaying the conversion needs."""
+    pending, spectrum, band, w, path, hits, flux, exc0 = state
     n = pending.shape[0]
     rows = jnp.nonzero(pending, size=min(CONVERSION_BATCH, n), fill_value=n)[0]
     ok = rows < n
-    into, carrier, out = _emission_shared(arriving, medium, config, rows, xi_e)
+    into, carrier, out, arrived = _emission_shared(arriving, medium, config, rows, xi_e)
     largest = jnp.max(into, axis=1)  # W; the new spectrum is into / largest (0: nothing emitted, W = 0 ends it)
     peak = jnp.where(largest > 0, largest, 1.0)
     again = jnp.take(arriving.converted, rows, mode="clip")
@@ -100,7 +102,14 @@ def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralCon
         path.at[rows].set(0.0, mode="drop"),
         hits.at[rows].set(0.0, mode="drop"),
         flux,
+        None if exc0 is None else exc0.at[rows].set(arrived / _row_peak(arrived)[:, None], mode="drop"),
     )
+
+
+def _row_peak(a: Array) -> Array:
+    """Largest entry of each row (1 where the row is all zero)."""
+    peak = jnp.max(a, axis=1)
+    return jnp.where(peak > 0, peak, 1.0)
 
 
 def _convert_batch_per_band(state, lanes: _Lanes, medium: _Medium, flat, w_conv, heat, xi_e):
