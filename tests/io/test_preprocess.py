@@ -87,6 +87,24 @@ def test_registration_recovers_known_subpixel_shifts_to_a_tenth_of_a_pixel(metho
     assert not registered.valid[5, :, -1].any() and registered.valid[0].all()
 
 
+def test_repeated_structure_registers_at_the_peak_within_the_allowed_shift():
+    """Two equal light spots 12.6 px apart (the droplet experiment's two narrow lights at 32 x 32):
+    the cross-correlation has side peaks at +-12.6 px, and for a true shift of 5.6 px the windowed
+    images' side peak at -7 px is the highest. The candidates within max_shift are compared after
+    moving."""
+    from scipy import ndimage
+
+    yy, xx = np.mgrid[0:32, 0:32].astype(np.float64)
+    spots = lambda cy, cx: sum(np.exp(-((yy - cy) ** 2 + (xx - x0) ** 2) / 4.0) for x0 in (cx - 6.3, cx + 6.3))  # noqa: E731
+    rng = np.random.default_rng(3)
+    truth = np.array([[0.0, 0.0], [1.6, -5.6], [-1.0, 0.7]])
+    data = np.stack([1000.0 * ndimage.shift(spots(16.0, 16.0), t, order=3) + 20.0 + rng.normal(0.0, 2.0, (32, 32))
+                     for t in truth])
+    registered, result = register_bands(measured(data), reference_band=0)
+    assert not result.failed and registered.good.all()
+    np.testing.assert_allclose(result.shifts, -truth, atol=0.1)
+
+
 def test_registration_onto_the_middle_band_by_default_and_shifts_reported_for_each_band():
     registered, result = register_bands(measured(moved_bands()))
     assert result.reference_band == 3

@@ -190,6 +190,35 @@ def estimate_shift(fixed: np.ndarray, moving: np.ndarray, *, upsample_factor: in
     return np.asarray(shift, dtype=np.float64), float(math.sqrt(max(0.0, 1.0 - min(1.0, error) ** 2)))
 
 
+CANDIDATES = 3
+"""Cross-correlation peaks within the allowed shift that `_refined_shift` compares after moving."""
+
+
+def windowed_peaks(fixed: np.ndarray, moving: np.ndarray, max_shift: float, count: int = CANDIDATES
+                   ) -> list[tuple[np.ndarray, float]]:
+    """Up to `count` (integer shift [row, column] px that puts `moving` onto `fixed`, normalised
+    correlation there), highest first: the local maxima of the cross-correlation within `max_shift`
+    px. A scene with repeated structure (two light spots, periodic texture) has side peaks at the
+    repeat distance, and the Hann window weighs a large true shift down: a side peak can be the
+    highest, so the candidates are compared after moving (`_refined_shift`)."""
+    from scipy import ndimage
+
+    if not (np.any(fixed) and np.any(moving)):
+        return [(np.zeros(2), 0.0)]
+    xcorr = np.real(np.fft.ifft2(np.fft.fft2(fixed) * np.conj(np.fft.fft2(moving))))
+    h, w = fixed.shape
+    dy = np.fft.fftfreq(h, 1.0 / h)[:, None] * np.ones((1, w))  # signed shifts of the FFT layout
+    dx = np.fft.fftfreq(w, 1.0 / w)[None, :] * np.ones((h, 1))
+    inside = np.hypot(dy, dx) <= max_shift
+    local = xcorr == ndimage.maximum_filter(xcorr, size=3, mode="wrap")
+    rows, cols = np.nonzero(inside & local)
+    order = np.argsort(-xcorr[rows, cols])[:count]
+    norm = math.sqrt(float(np.sum(fixed * fixed)) * float(np.sum(moving * moving)))
+    peaks = [(np.array([dy[r, c], dx[r, c]]), max(0.0, min(1.0, float(xcorr[r, c]) / norm)) if norm > 0 else 0.0)
+             for r, c in zip(rows[order], cols[order])]
+    return peaks or [(np.zeros(2), 0.0)]
+
+
 REFINEMENTS = 3
 """Re-estimates of a pair's shift after moving the band by the estimate so far: the Hann window
 pulls a smooth image's correlation peak towards zero shift (about 9 % of a 3 px shift of smooth
@@ -197,17 +226,28 @@ blobs), and each re-estimate measures only what is left (< 0.01 px after three).
 
 
 def _refined_shift(fixed_image: np.ndarray, moving: np.ndarray, valid: np.ndarray, space: str,
-                   upsample_factor: int) -> tuple[np.ndarray, float]:
-    """`estimate_shift` of the raw band `moving` onto the prepared `fixed_image`, refined by
-    re-estimating on the band moved by the shift so far (`REFINEMENTS` times at most). The
-    correlation returned is the first estimate's: whether the band matches at all is judged before
-    any moving (moving noise about could only raise it)."""
-    shift, corr = estimate_shift(fixed_image, registration_image(moving, valid, space), upsample_factor=upsample_factor)
-    for _ in range(REFINEMENTS):
-        if not corr or np.hypot(*shift) > min(moving.shape) / 2:
+                   upsample_factor: int, max_shift: float) -> tuple[np.ndarray, float]:
+    """Shift of the raw band `moving` onto the prepared `fixed_image`: of the integer peaks within
+    `max_shift` (`windowed_peaks`), the one whose moved band correlates best with it, then `estimate_shift` on the band moved by the shift so far,
+    `REFINEMENTS` times at most (sub-pixel). A refinement that jumps by more than a pixel has found
+    another peak (repeated structure) and is not taken. The correlation returned is the first
+    estimate's: whether the band matches at all is judged before any moving (moving noise about
+    could only raise it)."""
+    def moved_image(shift):
+        return registration_image(shift_band(moving, shift), shift_mask(valid, shift, inside=True), space)
+
+    def aligned(image):  # normalised correlation at zero shift: both windowed at the same place
+        norm = math.sqrt(float(np.sum(fixed_image**2)) * float(np.sum(image**2)))
+        return float(np.sum(fixed_image * image)) / norm if norm > 0 else -1.0
+
+    peaks = windowed_peaks(fixed_image, registration_image(moving, valid, space), max_shift)
+    shift, corr = max(peaks, key=lambda p: aligned(moved_image(p[0])) if p[1] else -1.0)
+    for _ in range(REFINEMENTS + 1):
+        if not corr:
             break
-        moved = registration_image(shift_band(moving, shift), shift_mask(valid, shift, inside=True), space)
-        rest, _ = estimate_shift(fixed_image, moved, upsample_factor=upsample_factor)
+        rest, _ = estimate_shift(fixed_image, moved_image(shift), upsample_factor=upsample_factor)
+        if np.hypot(*rest) > 1.0:
+            break
         shift = shift + rest
         if np.hypot(*rest) < 1.0 / upsample_factor:
             break
@@ -249,7 +289,8 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
     Neighbouring live bands are registered pairwise (`estimate_shift` on `registration_image`s in
     `space`, to 1/`upsample_factor` px) and the shifts chained; a pair whose correlation is below
     `min_correlation` or whose shift exceeds `max_shift` px (default a quarter of the smaller image
-    side) fails, its moving band is masked dead ("registration failed") and the chain goes on from
+    side; the correlation peak is sought within it) fails, its moving band is masked dead
+    ("registration failed") and the chain goes on from
     the last good band. Bands are moved with `shift_band` (spline `order`); `valid` loses the pixels
     that came from outside the frame; dead bands are left where they are. Returns the registered
     stack (`report["registration"]`) and the `Registration`.
@@ -268,7 +309,7 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
     pairs, failed = [], {}
     anchor = live[0]
     for b in live[1:]:
-        shift, corr = _refined_shift(images[anchor], stack.data[b], stack.valid[b], space, upsample_factor)
+        shift, corr = _refined_shift(images[anchor], stack.data[b], stack.valid[b], space, upsample_factor, max_shift)
         ok = bool(corr >= min_correlation and np.hypot(*shift) <= max_shift)
         pairs.append({"moving": b, "fixed": anchor, "shift_px": [round(float(v), 4) for v in shift],
                       "correlation": round(corr, 4), "ok": ok})
