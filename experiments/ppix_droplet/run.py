@@ -5,7 +5,13 @@ band, fitted back from a wrong initial guess by `tissuefit.fit`.
 The sample: one semi-infinite layer, background absorption mua [1/cm], power-law scattering
 mus'(λ) = a (λ/500 nm)^-b (b fixed), anisotropy g, and PpIX (concentration c, yield φ fixed: the
 fluorescence fixes c φ, the absorption c alone; c φ is reported) filling the view (the droplet
-spreads over the field). Lit by the endoscope's white cone lights; 400–720 nm, 16 nm bands.
+spreads over the field). 400–720 nm, 16 nm bands.
+
+Lit by two narrow white spots (default: 3° cones from 0.01 cm discs 0.2 cm apart, 1 cm above): the
+camera sees the light spread from each spot, whose profile fixes mua and mus' separately. Under the
+paper's broad 45° cones the image depends on them almost only through their ratio, and with a
+free scale the fit cannot tell mua = 0.1 from 1.5 (RESULTS.md); `--cone-deg 45 --light-radius 0.1
+--separation 0.4` gives that design back.
 
 Pipeline per seed: render the truth (photons x `--measured-factor`, key 10^6 + seed), record it
 with `tissuefit.io.synthetic_counts` (peak `--counts`, Poisson + Gaussian read noise b = 4 counts^2,
@@ -69,14 +75,22 @@ def main(argv=None):
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
     ap.add_argument("--simulation-keys", type=int, default=2)
     ap.add_argument("--free", default="mua,a,g,c_ppix", help="parameters to fit (the others stay at the truth)")
+    ap.add_argument("--cone-deg", type=float, default=3.0,
+                    help="half-angle of the lights' cones [deg]: narrow spots (default) or the paper's 45")
+    ap.add_argument("--light-radius", type=float, default=0.01, help="radius of each light's disc [cm]")
+    ap.add_argument("--separation", type=float, default=0.2, help="distance between the two lights [cm]")
     ap.add_argument("--out", type=Path, default=HERE / "out")
     args = ap.parse_args(argv)
     bands = tf.BandGrid([400.0 + 16.0 * k for k in range(21)], 16.0)
-    endo = rd.Endoscope(beta_deg=0.0, distance=1.0, fov_deg=25.0, width=args.size, height=args.size)
+    endo = rd.Endoscope(beta_deg=0.0, distance=1.0, fov_deg=25.0, width=args.size, height=args.size,
+                        cone_deg=args.cone_deg, light_radius=args.light_radius, separation=args.separation)
     options = rd.RenderOptions(specular_deg=0.0, fluorescence="surface", surface_radius=args.surface_radius)
     ref, dead = 10, 3
     rows = []
     for seed in range(args.seeds):
+        # every re-trace compiles anew (record counts change): three seeds' executables in one
+        # process ran a 24 GiB machine out of memory (RESULTS.md), so start each seed clean
+        jax.clear_caches()
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
         truth = rd.render(sample(bands, **TRUTH), endo, photons=args.photons * args.measured_factor,
