@@ -228,9 +228,10 @@ blobs), and each re-estimate measures only what is left (< 0.01 px after three).
 def _refined_shift(fixed_image: np.ndarray, moving: np.ndarray, valid: np.ndarray, space: str,
                    upsample_factor: int, max_shift: float) -> tuple[np.ndarray, float]:
     """Shift of the raw band `moving` onto the prepared `fixed_image`: of the integer peaks within
-    `max_shift` (`windowed_peaks`), the one whose moved band correlates best with it, then `estimate_shift` on the band moved by the shift so far,
-    `REFINEMENTS` times at most (sub-pixel). A refinement that jumps by more than a pixel has found
-    another peak (repeated structure) and is not taken. The correlation returned is the first
+    `max_shift` (`windowed_peaks`), the one whose moved band correlates best with it, then
+    `estimate_shift` on the band moved by the shift so far, `REFINEMENTS` times at most (sub-pixel).
+    A refinement that jumps by more than a pixel has found another peak (repeated structure) and is
+    not taken. The correlation returned is the first
     estimate's: whether the band matches at all is judged before any moving (moving noise about
     could only raise it)."""
     def moved_image(shift):
@@ -240,17 +241,19 @@ def _refined_shift(fixed_image: np.ndarray, moving: np.ndarray, valid: np.ndarra
         norm = math.sqrt(float(np.sum(fixed_image**2)) * float(np.sum(image**2)))
         return float(np.sum(fixed_image * image)) / norm if norm > 0 else -1.0
 
-    peaks = windowed_peaks(fixed_image, registration_image(moving, valid, space), max_shift)
-    shift, corr = max(peaks, key=lambda p: aligned(moved_image(p[0])) if p[1] else -1.0)
+    candidates = [(s, c, moved_image(s)) for s, c in windowed_peaks(fixed_image, registration_image(moving, valid, space),
+                                                                     max_shift)]
+    shift, corr, moved = max(candidates, key=lambda p: aligned(p[2]) if p[1] else -1.0)
     for _ in range(REFINEMENTS + 1):
         if not corr:
             break
-        rest, _ = estimate_shift(fixed_image, moved_image(shift), upsample_factor=upsample_factor)
+        rest, _ = estimate_shift(fixed_image, moved, upsample_factor=upsample_factor)
         if np.hypot(*rest) > 1.0:
             break
         shift = shift + rest
         if np.hypot(*rest) < 1.0 / upsample_factor:
             break
+        moved = moved_image(shift)
     return shift, corr
 
 
@@ -290,8 +293,7 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
     `space`, to 1/`upsample_factor` px) and the shifts chained; a pair whose correlation is below
     `min_correlation` or whose shift exceeds `max_shift` px (default a quarter of the smaller image
     side; the correlation peak is sought within it) fails, its moving band is masked dead
-    ("registration failed") and the chain goes on from
-    the last good band. Bands are moved with `shift_band` (spline `order`); `valid` loses the pixels
+    ("registration failed") and the chain goes on from the last good band. Bands are moved with `shift_band` (spline `order`); `valid` loses the pixels
     that came from outside the frame; dead bands are left where they are. Returns the registered
     stack (`report["registration"]`) and the `Registration`.
     """

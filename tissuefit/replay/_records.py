@@ -92,15 +92,20 @@ class RecordReplay(eqx.Module):
         """log P(tissue)/P0 per record and band, without the conversion coefficient's ratio."""
         _check_tissue(tissue, self.traced)
         rec = self.records
-        props = tuple(jnp.asarray(a, jnp.float64) for a in tissue.properties())
-        props0 = tuple(jax.lax.stop_gradient(jnp.asarray(a, jnp.float64)) for a in self.traced.properties())
-        f = lambda a: None if a is None else jnp.asarray(a, jnp.float64)  # noqa: E731
-        out = segment_log_ratio(f(rec.path), f(rec.hits), f(rec.score), props, props0)
+        out = self._segment(tissue, rec.path, rec.hits, rec.score)
         if rec.path0 is not None and rec.exc0 is None:  # per band (shared: in `conversion_ratio`)
-            exc = segment_log_ratio(f(rec.path0), f(rec.hits0), f(rec.score0), props, props0)
+            exc = self._segment(tissue, rec.path0, rec.hits0, rec.score0)
             exc = jnp.take_along_axis(exc, jnp.asarray(rec.band0, jnp.int32)[:, None], axis=1)
             out = out + jnp.where(jnp.asarray(rec.conversions)[:, None] > 0, exc, 0.0)
         return out
+
+    def _segment(self, tissue: SpectralTissue, path, hits, score) -> Float[Array, "n bands"]:
+        """`segment_log_ratio` of the records' segment statistics (path, hits, score), `tissue`
+        against the traced tissue (held fixed)."""
+        props = tuple(jnp.asarray(a, jnp.float64) for a in tissue.properties())
+        props0 = tuple(jax.lax.stop_gradient(jnp.asarray(a, jnp.float64)) for a in self.traced.properties())
+        f = lambda a: None if a is None else jnp.asarray(a, jnp.float64)  # noqa: E731
+        return segment_log_ratio(f(path), f(hits), f(score), props, props0)
 
     def conversion_ratio(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
         """The conversion's factor of each converted record's power (1 elsewhere), per band.
@@ -130,11 +135,8 @@ class RecordReplay(eqx.Module):
             band0, band = jnp.asarray(rec.band0), jnp.asarray(rec.band)
             new, old = mu[medium, band0, band], mu0[medium, band0, band]
             return jnp.where(conv & (old > 0)[:, None], (new / jnp.where(old > 0, old, 1.0))[:, None], 1.0)
-        props = tuple(jnp.asarray(a, jnp.float64) for a in tissue.properties())
-        props0 = tuple(jax.lax.stop_gradient(jnp.asarray(a, jnp.float64)) for a in self.traced.properties())
-        f = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
-        log_r = segment_log_ratio(f(rec.path0), f(rec.hits0), f(rec.score0), props, props0)  # [n, bands (from)]
-        exc = f(rec.exc0)
+        log_r = self._segment(tissue, rec.path0, rec.hits0, rec.score0)  # [n, bands (from)]
+        exc = jnp.asarray(rec.exc0, jnp.float64)
         # sum_i e_i R_i mu[i, j], scaled by the largest exponent per row (neither overflow nor underflow)
         log_er = jnp.where(exc > 0, jnp.log(jnp.where(exc > 0, exc, 1.0)) + log_r, -jnp.inf)
         shift = jax.lax.stop_gradient(jnp.max(jnp.where(conv, log_er, 0.0), axis=1, keepdims=True))

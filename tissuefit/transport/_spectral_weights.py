@@ -88,7 +88,7 @@ def _convert_batch(state, arriving: _Lanes, medium: _Medium, config: SpectralCon
     ok = rows < n
     into, carrier, out, arrived = _emission_shared(arriving, medium, config, rows, xi_e)
     largest = jnp.max(into, axis=1)  # W; the new spectrum is into / largest (0: nothing emitted, W = 0 ends it)
-    peak = jnp.where(largest > 0, largest, 1.0)
+    peak = _row_peak(into)
     again = jnp.take(arriving.converted, rows, mode="clip")
     f64 = jnp.float64
     act = jnp.asarray(config.active)
