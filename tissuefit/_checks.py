@@ -90,3 +90,10 @@ def check_positive_int(field: str, value, *, high: int | None = None) -> int:
         rng = f"[1, {high}]" if high is not None else "[1, inf)"
         raise ValueError(f"{field} = {value} is out of range; allowed {rng}")
     return int(value)
+
+
+def bucket(n: float, low: int = 4096) -> int:
+    """n rounded up to 2^k or 1.5 * 2^k (at least `low`): a buffer size that few counts share."""
+    n = max(low, int(math.ceil(n)))
+    p = 1 << (n - 1).bit_length()
+    return p * 3 // 4 if p * 3 // 4 >= n else p

@@ -113,7 +113,7 @@ def main(argv=None):
                         progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
                                                  f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
                                                  f"ESS {h['ess_min']:.3f}, moved {h['max_move_sigma']:.3g} sigma, "
-                                                 f"{h['seconds']:.1f} s", flush=True))
+                                                 f"{h['seconds']:.1f} s (render {h['seconds_render']:.1f} s, inner solve {h['seconds_solve']:.1f} s)", flush=True))
         got = dict(zip(result.names, zip(result.values, result.uncertainties)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_measurement": t_gen,
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),

@@ -132,3 +132,36 @@ def test_tile_candidate_counts_against_numpy(spread):
     largest, excess = _grid.tile_candidates(grid, jnp.asarray(coords), jnp.ones(len(xy), bool), 30)
     assert int(largest) == runs.max()
     assert int(excess) == np.maximum(runs - 30, 0).sum()
+
+
+def test_round_up_gives_records_of_similar_extent_one_structure(case):
+    """`round_up` (a fit's re-traces): padded buffers and rounded grid shapes and capacities make
+    maps of records whose counts and extents differ the same static structure, with the same
+    estimates as the unrounded map."""
+    rng = np.random.default_rng(21)
+    maps = []
+    for stretch in ((1.0, 1.3), (1.25, 1.0)):  # x and y extents swap order
+        n = int(rng.integers(N - 200, N))
+        xy = rng.uniform(-1, 1, (n, 2)) * np.asarray(stretch)
+        rec = records(xy, rng.uniform(0.1, 1, (n, 2)) / n).padded(4096)
+        assert rec.capacity == 4096 and int(rec.count) == n
+        rounded, plain = (pm.build_surface_map(rec, cell=0.1, round_up=r) for r in (True, False))
+        assert rounded.capacity >= plain.capacity and int(rounded.overflow) == 0
+        a = np.asarray(pm.estimate_surface(rounded, case["q"], radius=0.1))
+        b = np.asarray(pm.estimate_surface(plain, case["q"], radius=0.1))
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7 * b.max())
+        maps.append(rounded)
+    static = [eqx.partition(m, eqx.is_array)[1] for m in maps]
+    assert maps[0].grid.shape == maps[1].grid.shape == (32, 32)
+    assert eqx.tree_equal(*static) and maps[0].capacity == maps[1].capacity
+
+
+def test_padded_records_keep_their_rows_and_refuse_to_shrink(case):
+    rec = records(case["xy"], case["p"])
+    pad = rec.padded(N + 5)
+    assert pad.capacity == N + 5 and int(pad.count) == N and isinstance(pad.count, np.ndarray)
+    np.testing.assert_array_equal(np.asarray(pad.power)[:N], case["p"])
+    np.testing.assert_array_equal(np.asarray(pad.power)[N:], 0.0)
+    np.testing.assert_array_equal(pad.valid().position, rec.position)
+    with pytest.raises(ValueError, match=r"rows = 10; allowed at least the buffer's capacity 3000"):
+        rec.padded(10)

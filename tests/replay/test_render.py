@@ -49,6 +49,24 @@ def test_replayed_stack_is_the_render_and_modes_agree():
     assert 0 < float(ess["surface"][0]) < 1
 
 
+def test_re_traces_share_the_replay_structure():
+    """A fit's re-traces (nearby parameters, other keys: other record counts and extents) give
+    replays of one static structure (padded buffers, rounded maps), so the replay and the inner
+    solve compile once (a count that crosses a buffer size recompiles once more)."""
+    import equinox as eqx
+
+    import dataclasses
+
+    options = dataclasses.replace(OPTIONS, step_length=0.01)  # as `fit` fixes it after its first render
+    a, b = (rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,
+                      illumination=rd.Floodlight(0.6), replay=True) for p, s in ((P0, 0), (P0 * jnp.asarray([1.05, 0.97]), 1)))
+    assert a.surface_photons != b.surface_photons
+    static = [eqx.partition(r.replay, eqx.is_array)[1] for r in (a, b)]
+    assert eqx.tree_equal(*static)
+    assert jax.tree.structure(a.replay) == jax.tree.structure(b.replay)
+    assert [np.shape(x) for x in jax.tree.leaves(a.replay)] == [np.shape(x) for x in jax.tree.leaves(b.replay)]
+
+
 @pytest.mark.slow  # 12 renders, ~100 s on 2 cores
 def test_pixel_gradients_match_finite_differences_of_independent_renders():
     rows = []

@@ -179,10 +179,11 @@ def fit(
         nonlocal options
         out = render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=options,
                      illumination=illumination, observation_filter=observation_filter, replay=True)
-        if options.surface_radius is None:
-            # one bandwidth for every render of the fit: the model's blur must not change between
-            # re-traces (and a fixed map cell lets the renders share compiled code)
-            options = dataclasses.replace(options, surface_radius=float(out.surface_radius))
+        if options.surface_radius is None or options.step_length is None:
+            # one bandwidth and march step for every render of the fit: the model's blur must not
+            # change between re-traces (and fixed static values let the renders share compiled code)
+            options = dataclasses.replace(options, surface_radius=options.surface_radius or float(out.surface_radius),
+                                          step_length=options.step_length or float(out.step_length))
         return out
 
     t_start = time.perf_counter()
@@ -227,6 +228,7 @@ def fit(
         current = layout.tissue(tissue, x)
         rendered = do_render(current, key)
         replay = rendered.replay
+        t_render = time.perf_counter() - t_it
         if scale and it == 0:
             # start the free scale at the least-squares gain of the first render (camera units are arbitrary)
             w = np.where(use, 1.0 / np.maximum(var_meas, 1e-300), 0.0)
@@ -240,6 +242,7 @@ def fit(
         chi2_start = float(jnp.sum(residuals(x, args) ** 2))
         sol = optx.least_squares(residuals, solver_obj, x, args, max_steps=inner_steps, throw=False)
         inner_result, n_inner, x_new = _result_message(sol.result), int(sol.stats["num_steps"]), sol.value
+        t_solve = time.perf_counter() - t_it - t_render
         if not bool(jnp.all(jnp.isfinite(x_new))):
             reason = f"inner solve returned non-finite parameters at re-trace {it}"
             break
@@ -257,6 +260,7 @@ def fit(
             "chi2_start": chi2_start, "chi2_end": chi2_end, "inner_steps": n_inner,
             "inner_result": inner_result, "step_fraction": float(t_step), "ess_min": ess_min,
             "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
+            "seconds_render": t_render, "seconds_solve": t_solve,
         })
         x = x_next
         if progress is not None:

@@ -22,7 +22,8 @@ class FitResult(eqx.Module):
     - `chi2`, `dof`, `birge_ratio`; `residuals` [bands, H, W]: (sim - meas)/sigma (0 where masked);
       `simulated`, `measured` [bands, H, W]; `mask` [bands, H, W]; `wavelengths` [bands] nm.
     - `history`: one dict per re-trace (values, chi2 before/after, inner steps and result, step
-      fraction, smallest ESS ratio, largest move in standard errors, seconds).
+      fraction, smallest ESS ratio, largest move in standard errors, seconds; of them the render
+      and the inner solve).
     - `converged`, `reason`; `seconds`: wall time of the fit (without the final Jacobian render).
     - `tissue`: the fitted `SpectralTissue`; `simulation_rel_variance` [bands]; `solver`; `settings`.
     """

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._checks import check_positive_int, check_range, is_concrete
+from .._checks import bucket, check_positive_int, check_range, is_concrete
 from ._grid import Grid, argsort_keys, cell_coords, index_dtype, index_limit, linear_id, tile_candidates
 
 Precision = Literal["float32", "float64"]
@@ -141,7 +141,7 @@ def _fill(cls, grid: Grid, capacity: int, arrays, dtype):
     return cls(capacity=capacity, **fields)
 
 
-def _build(cls, records, *, cell, capacity, tile, precision, capacity_multiplier):
+def _build(cls, records, *, cell, capacity, tile, precision, capacity_multiplier, round_up=False):
     dim = 2 if cls is SurfaceMap else 3
     check_range("cell", cell, unit="cm", low=0.0, low_open=True)
     if not is_concrete(cell) or np.ndim(cell) != 0:
@@ -162,6 +162,9 @@ def _build(cls, records, *, cell, capacity, tile, precision, capacity_multiplier
     if pos.size:
         lo = pos.min(axis=0)
         shape = tuple(int(n) for n in np.floor((pos.max(axis=0) - lo) / cell).astype(np.int64) + 1)
+        if round_up:  # a few grid shapes: maps of similar records share compiled code
+            lateral = bucket(max(shape[:2]), low=8)  # x and y alike (their extents may swap order)
+            shape = (lateral, lateral, *(bucket(n, low=8) for n in shape[2:]))
     else:
         lo, shape = np.zeros(dim), (1,) * dim
     if math.prod(shape) >= index_limit():
@@ -174,6 +177,8 @@ def _build(cls, records, *, cell, capacity, tile, precision, capacity_multiplier
     fields, largest = _sort(cls, grid, jnp.asarray(capacity or 0, index_dtype()), *arrays, dtype)
     if capacity is None:  # from the data: no overflow by construction
         capacity = max(1, math.ceil(int(largest) * float(capacity_multiplier)))
+        if round_up:
+            capacity = bucket(capacity, low=1)
         fields["overflow"] = jnp.zeros((), jnp.int32)
     return cls(capacity=capacity, **fields)
 
@@ -186,6 +191,7 @@ def build_surface_map(
     tile: int = 4,
     precision: Precision = "float32",
     capacity_multiplier: float = 1.25,
+    round_up: bool = False,
 ) -> SurfaceMap:
     """Sort surface records into a grid (eager: the grid and the capacity come from the data).
 
@@ -198,10 +204,14 @@ def build_surface_map(
       records times `capacity_multiplier` (headroom for `update_map` with new records).
     - `tile`: cells per query-tile edge (default 4, measured: experiments/photonmap/README.md).
     - `precision`: working precision of positions, powers and sums (default float32).
+    - `round_up`: round the grid's shape (x and y to the larger of the two; at least 8 cells) and
+      the default capacity up to 2^k or 1.5 * 2^k, so that maps of similar records (a fit's
+      re-traces) have the same static structure and share compiled code (at most 1.33x the
+      estimate's work; the grid's cells cost memory only).
     Returns a `SurfaceMap`; its `overflow` is 0 unless `capacity` was given too small.
     """
     return _build(SurfaceMap, records, cell=cell, capacity=capacity, tile=tile, precision=precision,
-                  capacity_multiplier=capacity_multiplier)
+                  capacity_multiplier=capacity_multiplier, round_up=round_up)
 
 
 def build_volume_map(
@@ -212,13 +222,14 @@ def build_volume_map(
     tile: int = 2,
     precision: Precision = "float32",
     capacity_multiplier: float = 1.25,
+    round_up: bool = False,
 ) -> VolumeMap:
     """Sort volume records (position [rows, 3] cm, z >= 0; direction [rows, 3]) into a grid.
 
     Arguments as `build_surface_map` (default `tile` 2, measured). Returns a `VolumeMap`.
     """
     return _build(VolumeMap, records, cell=cell, capacity=capacity, tile=tile, precision=precision,
-                  capacity_multiplier=capacity_multiplier)
+                  capacity_multiplier=capacity_multiplier, round_up=round_up)
 
 
 def update_map(photon_map: SurfaceMap | VolumeMap, records) -> SurfaceMap | VolumeMap:

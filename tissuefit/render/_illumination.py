@@ -14,16 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_range
+from .._checks import bucket, check_range
 from ..scene import FlatBeam, LaunchList
 from ._endoscope import Endoscope
-
-
-def bucket(n: float) -> int:
-    """n rounded up to 2^k or 1.5 * 2^k (at least 4096): a buffer size that few counts share."""
-    n = max(4096, int(math.ceil(n)))
-    p = 1 << (n - 1).bit_length()
-    return p * 3 // 4 if p * 3 // 4 >= n else p
 
 
 def uniforms(photons: int, dim: int, key, halton: bool) -> np.ndarray:

@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._checks import check_positive_int, check_range
+from .._checks import bucket, check_positive_int, check_range
 from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile, update_map
 from ..photonmap._kernels import KERNELS
 from ..scene import FlatSpectrum, SpectralScene, SpectralTissue
@@ -62,7 +62,7 @@ from ..scene._spectra import AbstractSpectrum
 from ..transport import RecordSpec, SpectralOptions, TraceOptions, trace_spectral
 from ..transport import _physics as phys
 from ._endoscope import Endoscope
-from ._illumination import ConeLights, Floodlight, bucket
+from ._illumination import ConeLights, Floodlight
 
 
 class RenderOptions(eqx.Module):
@@ -525,9 +525,13 @@ def render(
     hits_np = np.asarray(hits_xyz)[np.asarray(hit)]
     r_s = options.surface_radius or _auto_radius(surf.position[:, :2], hits_np[:, :2], options.neighbours, 1,
                                                  band_share(surf.power))
+    if replay:
+        # buffers and maps rounded up to a few sizes: a fit's re-traces (record counts and extents
+        # that differ a little) then reuse the replay's, the inner solve's and the maps' compiles
+        surf = surf.padded(bucket(surf.count))
     # one extra column of ones counts the records under the kernel (coverage)
-    counting = eqx.tree_at(lambda r: r.power, surf, np.concatenate([surf.power, np.ones((surf.count, 1))], axis=1))
-    smap = build_surface_map(counting, cell=r_s)
+    counting = eqx.tree_at(lambda r: r.power, surf, np.concatenate([surf.power, np.ones((surf.capacity, 1))], axis=1))
+    smap = build_surface_map(counting, cell=r_s, round_up=replay)
 
     geo = tissue.geometry
     n_above, n_top = float(geo.n_above), float(np.asarray(geo.n)[0])
@@ -560,10 +564,12 @@ def render(
         # emission records are ~10-20x sparser than arrivals: their own bandwidth, from their density
         r_e = options.volume_radius or (_auto_radius(emissions.position, pts_np, options.neighbours, 3, band_share(emissions.power))
                                         if emissions.count else r_v)
+        if replay:
+            arrivals, emissions = (r.padded(bucket(r.count)) for r in (arrivals, emissions))
         if arrivals.count:
-            vmap_arr = build_volume_map(arrivals, cell=r_v)
+            vmap_arr = build_volume_map(arrivals, cell=r_v, round_up=replay)
         if emissions.count:
-            vmap_em = build_volume_map(emissions, cell=r_e)
+            vmap_em = build_volume_map(emissions, cell=r_e, round_up=replay)
     timings["maps"] = time.perf_counter() - t1
 
     # 3. estimates per pixel

@@ -121,7 +121,7 @@ class RecordReplay(eqx.Module):
         rec = self.records
         nb = self.traced.bands.num_bands
         if rec.conversions is None:
-            return jnp.ones((rec.count, nb))
+            return jnp.ones((rec.capacity, nb))
 
         def coefficient(t, stop):  # mu_conv [media, bands (from), bands (into)]
             mua, mus, _ = (jnp.asarray(a, jnp.float64) for a in t.properties())
@@ -142,8 +142,8 @@ class RecordReplay(eqx.Module):
         shift = jax.lax.stop_gradient(jnp.max(jnp.where(conv, log_er, 0.0), axis=1, keepdims=True))
         shift = jnp.where(jnp.isfinite(shift), shift, 0.0)
         er = jnp.where(conv, jnp.exp(log_er - shift), 0.0)
-        num = jnp.zeros((rec.count, nb))
-        den = jnp.zeros((rec.count, nb))
+        num = jnp.zeros((rec.capacity, nb))
+        den = jnp.zeros((rec.capacity, nb))
         for m in range(mu.shape[0]):
             at = (medium == m)[:, None]
             num = jnp.where(at, er @ mu[m], num)

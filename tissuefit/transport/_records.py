@@ -137,6 +137,25 @@ class PhotonRecords(eqx.Module):
             **{k: cut(getattr(self, k)) for k in REPLAY_FIELDS},
         )
 
+    def padded(self, rows: int) -> "PhotonRecords":
+        """The same records in a buffer of `rows` >= capacity (numpy; the extra rows are zero
+        padding beyond `count`), with `count` as a 0-d array: buffers padded to a few sizes give
+        arrays of a few shapes, so that functions compiled on them (a fit's replay, `update_map`)
+        are reused between traces whose record counts differ."""
+        rows = check_positive_int("rows", rows, high=2**40)
+        if rows < self.capacity:
+            raise ValueError(f"rows = {rows}; allowed at least the buffer's capacity {self.capacity}")
+
+        def pad(a):
+            if a is None:
+                return None
+            a = np.asarray(a)
+            return np.concatenate([a, np.zeros((rows - a.shape[0], *a.shape[1:]), a.dtype)])
+
+        fields = {f: pad(getattr(self, f)) for f in ("position", "direction", "power", "band", "converted",
+                                                    "photon", "emission", "path", "hits", *REPLAY_FIELDS)}
+        return PhotonRecords(count=np.asarray(int(self.count), np.int64), overflow=int(self.overflow), **fields)
+
 
 REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "exc0", "conv_medium", "conversions")
 """Record fields kept with `RecordSpec.replay` (None otherwise)."""
