@@ -105,6 +105,23 @@ def test_repeated_structure_registers_at_the_peak_within_the_allowed_shift():
     np.testing.assert_allclose(result.shifts, -truth, atol=0.1)
 
 
+def test_neighbours_moved_opposite_ways_register_within_max_shift_of_the_reference():
+    """The droplet at 24 x 24 (spots 11 px apart, default max_shift 6 px): bands 0 and 1 moved by
+    about 3 px per axis in opposite directions are 7.1 px apart, so a shift between neighbours
+    could not be found within max_shift (both bands ended 3-4 px off). Each band is registered
+    onto its neighbour already moved onto the reference grid: its own shift, within max_shift."""
+    from scipy import ndimage
+
+    yy, xx = np.mgrid[0:24, 0:24].astype(np.float64)
+    spots = sum(np.exp(-((yy - 12.0) ** 2 + (xx - x0) ** 2) / 4.0) for x0 in (6.5, 17.5))
+    rng = np.random.default_rng(4)
+    truth = np.array([[0.82, -1.38], [-2.75, -2.9], [1.88, 2.48], [0.0, 0.0]])
+    data = np.stack([1000.0 * ndimage.shift(spots, t, order=3) + 20.0 + rng.normal(0.0, 2.0, (24, 24)) for t in truth])
+    registered, result = register_bands(measured(data), reference_band=3)
+    assert not result.failed and registered.good.all()
+    np.testing.assert_allclose(result.shifts, -truth, atol=0.1)
+
+
 def test_registration_onto_the_middle_band_by_default_and_shifts_reported_for_each_band():
     registered, result = register_bands(measured(moved_bands()))
     assert result.reference_band == 3
@@ -187,5 +204,6 @@ def test_bands_marked_bad_keep_their_reason_and_registration_skips_them():
     assert prepared.report["dead_bands"] == [{"band": 4, "wavelength_nm": 580.0,
                                               "reason": "marked bad in the header (bbl = 0)"}]
     assert prepared.report["registration"]["shifts_px"][4] is None
-    assert [p["moving"] for p in prepared.report["registration"]["pairs"]] == [1, 2, 3, 5]
+    # outward from the reference (the middle live band, 2): up 3, 5 (onto 3, past the dead 4), down 1, 0
+    assert [(p["moving"], p["fixed"]) for p in prepared.report["registration"]["pairs"]] == [(3, 2), (5, 3), (1, 2), (0, 1)]
     assert "calibration" in prepared.report

@@ -5,12 +5,14 @@
 - `dead_bands` / `mask_dead_bands`: a band that is constant (all black), mostly saturated, far
   below its neighbours, lost in the noise, or marked bad by the file is masked (`good` False) and
   reported with its reason. Its samples are left as they are: never interpolated from neighbours.
-- `register_bands`: tissue moves between exposures; each good band is registered onto its
-  neighbour with `skimage.registration.phase_cross_correlation` (sub-pixel, Guizar-Sicairos 2008),
-  on gradient-magnitude images (bands differ in brightness and contrast), Hann-windowed, and the
-  pairwise shifts are chained to one reference band; the bands are then shifted (cubic spline,
-  `scipy.ndimage.shift`) and the pixels that came from outside the frame (or lie within the
-  spline's reach of it) are marked invalid.
+- `register_bands`: tissue moves between exposures; outward from one reference band, each good
+  band is registered onto its neighbour already moved onto the reference grid, with
+  `skimage.registration.phase_cross_correlation` (sub-pixel, Guizar-Sicairos 2008) on
+  gradient-magnitude images (bands differ in brightness and contrast), Hann-windowed: neighbours
+  look alike, and each shift found is the band's own shift from the reference (bounded by
+  `max_shift`), not a difference of two that could reach twice that. The bands are then shifted
+  (cubic spline, `scipy.ndimage.shift`) and the pixels that came from outside the frame (or lie
+  within the spline's reach of it) are marked invalid.
   A pair that does not correlate (or moves too far) fails: that band is masked as dead.
 - `prepare_measured`: the three in order, as the fit and `tissuefit compare` use them.
 """
@@ -136,9 +138,11 @@ class Registration(eqx.Module):
 
     - `shifts` [bands, 2] pixels (row, column): the shift applied to each band to put it on the
       reference band's grid (NaN for bands not registered: dead, or failed).
-    - `pairs`: one entry per neighbouring pair of live bands: `moving`, `fixed` (band indices),
-      `shift` [row, column] px (moving onto fixed), `correlation` (peak normalised
-      cross-correlation of the windowed gradient images, 1 = identical), `ok`.
+    - `pairs`: one entry per live band but the reference, in the order registered: `moving`,
+      `fixed` (its neighbour towards the reference, already on the reference grid), `shift`
+      [row, column] px (moving onto the moved fixed band: the moving band's shift onto the
+      reference grid), `correlation` (peak normalised cross-correlation of the windowed gradient
+      images, 1 = identical), `ok`.
     - `reference_band`, `space` ("gradient" or "intensity"), `upsample_factor`, `failed` {band: reason}.
     """
 
@@ -289,13 +293,15 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
                    order: int = 3) -> tuple[MeasuredStack, Registration]:
     """Register every live band of `stack` onto `reference_band` (default: the middle live band).
 
-    Neighbouring live bands are registered pairwise (`estimate_shift` on `registration_image`s in
-    `space`, to 1/`upsample_factor` px) and the shifts chained; a pair whose correlation is below
-    `min_correlation` or whose shift exceeds `max_shift` px (default a quarter of the smaller image
-    side; the correlation peak is sought within it) fails, its moving band is masked dead
-    ("registration failed") and the chain goes on from the last good band. Bands are moved with `shift_band` (spline `order`); `valid` loses the pixels
-    that came from outside the frame; dead bands are left where they are. Returns the registered
-    stack (`report["registration"]`) and the `Registration`.
+    Outward from the reference (up the band list, then down), each live band is registered onto
+    its neighbour towards the reference, already moved onto the reference grid (`estimate_shift`
+    on `registration_image`s in `space`, to 1/`upsample_factor` px), so the shift found is the
+    band's own. A band whose correlation is below `min_correlation` or whose shift exceeds
+    `max_shift` px (default a quarter of the smaller image side; the correlation peak is sought
+    within it) fails: it is masked dead ("registration failed") and the next band is registered
+    onto the last good one. Bands are moved with `shift_band` (spline `order`); `valid` loses the
+    pixels that came from outside the frame; dead bands are left where they are. Returns the
+    registered stack (`report["registration"]`) and the `Registration`.
     """
     bands, height, width = stack.shape
     if not (isinstance(upsample_factor, int) and upsample_factor >= 1):
@@ -306,29 +312,33 @@ def register_bands(stack: MeasuredStack, *, reference_band: int | None = None, u
         reference_band = live[len(live) // 2] if live else 0
     if reference_band not in live:
         raise ValueError(f"reference_band = {reference_band} is not a live band; allowed: {live}")
-    images = {b: registration_image(stack.data[b], stack.valid[b], space) for b in live}
-    positions = {live[0]: np.zeros(2)}  # shift that puts each band on the first live band's grid
+    # images on the reference grid of the bands registered so far (the reference as it is)
+    placed = {reference_band: registration_image(stack.data[reference_band], stack.valid[reference_band], space)}
+    positions = {reference_band: np.zeros(2)}  # shift that puts each band on the reference band's grid
     pairs, failed = [], {}
-    anchor = live[0]
-    for b in live[1:]:
-        shift, corr = _refined_shift(images[anchor], stack.data[b], stack.valid[b], space, upsample_factor, max_shift)
-        ok = bool(corr >= min_correlation and np.hypot(*shift) <= max_shift)
-        pairs.append({"moving": b, "fixed": anchor, "shift_px": [round(float(v), 4) for v in shift],
-                      "correlation": round(corr, 4), "ok": ok})
-        if ok:
-            positions[b] = positions[anchor] + shift
-            anchor = b
-        else:
-            failed[b] = (f"registration failed: onto band {anchor} ({stack.wavelengths[anchor]:g} nm) correlation "
-                         f"{corr:.3f} (allowed >= {min_correlation:g}), shift {np.hypot(*shift):.2f} px (allowed <= "
-                         f"{max_shift:g} px)")
-    if reference_band in failed:  # the reference itself failed against its neighbour: use the first live band
-        reference_band = live[0]
+    up = [b for b in live if b > reference_band]
+    down = [b for b in reversed(live) if b < reference_band]
+    for side in (up, down):
+        anchor = reference_band
+        for b in side:
+            shift, corr = _refined_shift(placed[anchor], stack.data[b], stack.valid[b], space, upsample_factor, max_shift)
+            ok = bool(corr >= min_correlation and np.hypot(*shift) <= max_shift)
+            pairs.append({"moving": b, "fixed": anchor, "shift_px": [round(float(v), 4) for v in shift],
+                          "correlation": round(corr, 4), "ok": ok})
+            if ok:
+                positions[b] = shift
+                placed[b] = registration_image(shift_band(stack.data[b], shift, order=order),
+                                               shift_mask(stack.valid[b], shift, inside=True, order=order), space)
+                anchor = b
+            else:
+                failed[b] = (f"registration failed: onto band {anchor} ({stack.wavelengths[anchor]:g} nm) correlation "
+                             f"{corr:.3f} (allowed >= {min_correlation:g}), shift {np.hypot(*shift):.2f} px (allowed <= "
+                             f"{max_shift:g} px)")
     shifts = np.full((bands, 2), np.nan)
     data, valid, saturated = stack.data.copy(), stack.valid.copy(), stack.saturated.copy()
     variance = None if stack.variance is None else stack.variance.copy()
     for b, position in positions.items():
-        shifts[b] = position - positions[reference_band]
+        shifts[b] = position
         if not np.any(shifts[b]):
             continue
         data[b] = shift_band(stack.data[b], shifts[b], order=order)
