@@ -122,3 +122,54 @@ def test_fluorescence_image_gradient_in_the_concentration():
     e_fd = math.hypot(sides[0].std(ddof=1) / 2, sides[1].std(ddof=1) / 2) / 6.0
     assert abs(fd) > 3 * e_fd
     assert abs(got - fd) <= K * math.hypot(e_got, e_fd), (got, e_got, fd, e_fd)
+
+
+@pytest.mark.parametrize("kernel", ["epanechnikov", "box"])
+def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
+    """`RenderReplay.variance` (squared kernel as a map kernel) against the brute-force sum of
+    (K_i P_i)^2 over every record, at the traced tissue and at another."""
+    import dataclasses
+
+    from tissuefit.photonmap._kernels import kernel_weight
+
+    options = dataclasses.replace(OPTIONS, kernel=kernel)
+    got = rd.render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
+                    illumination=rd.Floodlight(0.6), replay=True)
+    rep = got.replay
+    assert rep.has_variance
+    sh, r = rep.shading, rep.shading.radii[0]
+    rec = rep.surface.records
+    n = int(rec.count)
+    xy = np.asarray(rec.position, np.float32)[:n, :2].astype(np.float64)
+    q = np.asarray(sh.q_xy, np.float32).astype(np.float64)
+    d2 = ((q[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
+    k = np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))  # [P, n]
+    for p in (P0, P0 * jnp.asarray([1.2, 0.9])):
+        power = np.asarray(rep.surface.power(tissue(p)))[:n]
+        want = (k**2 @ power**2) * np.asarray(sh.t_surface)[:, None] ** 2
+        want = np.where(np.asarray(rep.hit).reshape(-1)[:, None], want, 0.0).T.reshape(-1, *rep.hit.shape)
+        want = want * np.asarray(rep.transmission)[:, None, None] ** 2
+        np.testing.assert_allclose(np.asarray(rep.variance(tissue(p))), want, rtol=1e-4, atol=1e-6 * want.max())
+
+
+def test_replay_variance_predicts_the_spread_between_keys():
+    """Sum (K_i P_i)^2 is the Monte Carlo variance of a pixel: renders at 8 keys."""
+    outs = [render(P0, 40 + s, replay=True) for s in range(8)]
+    stacks = np.array([o.stack for o in outs])
+    pred = np.mean([np.asarray(o.replay.variance(tissue(P0))) for o in outs], axis=0)
+    mean = stacks.mean(0)
+    ok = mean > 0.1 * mean.max()
+    ratio = stacks.var(0, ddof=1)[ok].mean() / pred[ok].mean()
+    # 7 degrees of freedom per pixel over ~100 correlated pixels: a relative sd of about 0.1
+    assert 0.7 < ratio < 1.4, ratio
+
+
+def test_replay_variance_needs_a_squarable_kernel():
+    import dataclasses
+
+    options = dataclasses.replace(OPTIONS, kernel="gaussian")
+    rep = rd.render(tissue(P0), ENDO, photons=2_000, key=jax.random.key(3), options=options,
+                    illumination=rd.Floodlight(0.6), replay=True).replay
+    assert not rep.has_variance
+    with pytest.raises(ValueError, match=r"kernel 'box' or 'epanechnikov'; got k = None, kernel = 'gaussian'"):
+        rep.variance(tissue(P0))

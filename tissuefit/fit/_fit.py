@@ -25,10 +25,14 @@ Uncertainties: cov_x = (J^T J)^-1 at the optimum, J = d r / d x, mapped to the p
 by the transforms' derivatives, times max(1, chi^2 / dof) (the Birge ratio: a model or noise
 model too optimistic widens the errors instead of hiding).
 
-Simulation variance: estimated at the start from two extra renders at the initial parameters with
-other keys, as a relative variance per band, median over pixels of (s1 - s2)^2 / (2 s0^2);
-Var[sim] = rel_var[band] * sim^2 at each re-trace. (Kernel estimates are correlated between nearby
-pixels, so this per-pixel term understates the simulation's effect on the parameters somewhat.)
+Simulation variance: per pixel from the records themselves, Var[sim] = s^2 sum_i (K_i P_i)^2 at the
+trace point (`RenderReplay.variance`; a fixed surface bandwidth and the box or Epanechnikov
+kernel; 6 renders of the droplet at other keys: empirical / predicted variance 0.99). Otherwise
+from two extra renders at the initial parameters with other keys, as a relative variance per band:
+median over pixels of (s1 - s2)^2 / (2 s0^2) divided by 0.455, the median of chi^2 with one degree
+of freedom (the plain median understated the variance ~2x); Var[sim] = rel_var[band] * sim^2. (Kernel
+estimates are correlated between nearby pixels, so this per-pixel term understates the
+simulation's effect on the parameters somewhat: `simulation_keys` measures that.)
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ import numpy as np
 import optimistix as optx
 
 from ..render import RenderOptions, render
+from ..render._render import SQUARED_KERNEL
 from ._parameters import FitParameter, Layout
 from ._result import FitResult
 
@@ -124,7 +129,7 @@ def fit(
     - `solver`: "levenberg-marquardt" (default), "gauss-newton" or "bfgs"; `rtol`, `atol`,
       `inner_steps`: the inner optimistix solve's.
     - `max_retraces`, `ess_threshold`, `tol_sigma`: the outer loop (module docstring).
-    - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2.
+    - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2 (module docstring).
     - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
     - `simulation_keys`: renders at other keys at the optimum for the simulation part of the
       uncertainty (0: none); `progress`: called with each re-trace's history entry (a dict).
@@ -188,13 +193,15 @@ def fit(
 
     t_start = time.perf_counter()
     rel_var = np.zeros(bands.num_bands)
-    if simulation_variance:
+    # the per-pixel variance from the records (sum of squared kernel contributions) where the kernel allows
+    per_pixel = simulation_variance and options.k is None and options.kernel in SQUARED_KERNEL
+    if simulation_variance and not per_pixel:
         base = layout.tissue(tissue, x)
         s = [do_render(base, jax.random.fold_in(key, 1000 + i)).stack for i in range(2)]
         s0 = 0.5 * (s[0] + s[1])
         for b in range(bands.num_bands):
             ok = use[b] & (s0[b] > 0)
-            rel_var[b] = float(np.median((s[0][b][ok] - s[1][b][ok]) ** 2 / (2 * s0[b][ok] ** 2))) if ok.any() else 0.0
+            rel_var[b] = float(np.median((s[0][b][ok] - s[1][b][ok]) ** 2 / (2 * s0[b][ok] ** 2))) / CHI2_1_MEDIAN if ok.any() else 0.0
 
     data_j, use_j = jnp.asarray(data), jnp.asarray(use)
     prior_idx, prior_mean, prior_sd = [], [], []
@@ -217,6 +224,14 @@ def fit(
             r = jnp.concatenate([r, (layout.values(xv)[prior_idx] - prior_mean) / prior_sd])
         return r
 
+    def sim_variance(replay, t, sim, scale_value):
+        """Var[sim] [bands, H, W] at the trace point (units^2 of the measurement)."""
+        if not simulation_variance:
+            return 0.0
+        if per_pixel:
+            return np.asarray(replay.variance(t)) * scale_value**2
+        return rel_var[:, None, None] * sim**2
+
     solver_obj = _solver(solver, rtol, atol)
     history = []
     converged, reason = False, f"not converged after {max_retraces} re-traces (parameters still moving)"
@@ -235,8 +250,9 @@ def fit(
             num, den = np.sum(w * rendered.stack * data), np.sum(w * rendered.stack**2)
             if num > 0 and den > 0:
                 x = x.at[-1].set(math.log(num / den))
-        sim0 = rendered.stack * float(layout.scale_of(x))
-        var = var_meas + (rel_var[:, None, None] * sim0**2 if simulation_variance else 0.0)
+        s_now = float(layout.scale_of(x))
+        v_sim = sim_variance(replay, current, rendered.stack * s_now, s_now)
+        var = var_meas + v_sim
         sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
         args = (replay, sigma)
         chi2_start = float(jnp.sum(residuals(x, args) ** 2))
@@ -283,7 +299,10 @@ def fit(
     final = do_render(layout.tissue(tissue, x), key)
     replay = final.replay
     sim_final = np.asarray(replay.stack(layout.tissue(tissue, x))) * float(layout.scale_of(x))
-    var = var_meas + (rel_var[:, None, None] * sim_final**2 if simulation_variance else 0.0)
+    var = var_meas + sim_variance(replay, layout.tissue(tissue, x), sim_final, float(layout.scale_of(x)))
+    if per_pixel:  # the relative variance per band, for the report
+        rel = np.where(use & (sim_final > 0), (var - var_meas) / np.where(sim_final > 0, sim_final, 1.0) ** 2, np.nan)
+        rel_var = np.asarray([np.nanmedian(b) if np.isfinite(b).any() else 0.0 for b in rel])
     sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
     r = np.asarray(residuals(x, (replay, sigma)))
     jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma)))
@@ -326,8 +345,10 @@ def fit(
         settings={"photons": int(photons), "scale": bool(scale), "ess_threshold": ess_threshold,
                   "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
-                  "simulation_variance": "two renders at the initial guess, relative variance per band" if
-                  simulation_variance else None, "surface_radius_cm": options.surface_radius},
+                  "simulation_variance": None if not simulation_variance else (
+                      "per pixel from the records (sum of squared kernel contributions)" if per_pixel else
+                      "two renders at the initial guess, relative variance per band"),
+                  "surface_radius_cm": options.surface_radius},
     )
 
 
@@ -339,6 +360,9 @@ def _result_message(result) -> str:
     except Exception:  # noqa: BLE001
         return "inner solve stopped: " + ("max_steps reached" if result == optx.RESULTS.max_steps_reached else "failed")
 
+
+CHI2_1_MEDIAN = 0.4549364231195724
+"""The median of chi^2 with one degree of freedom (scipy.stats.chi2(1).median())."""
 
 OSCILLATION_WINDOW = 3
 """Re-traces over which `fit` tests for jitter without drift."""

@@ -56,7 +56,7 @@ from jaxtyping import Array
 
 from .._checks import bucket, check_positive_int, check_range
 from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile, update_map
-from ..photonmap._kernels import KERNELS
+from ..photonmap._kernels import _NORM, KERNELS
 from ..scene import FlatSpectrum, SpectralScene, SpectralTissue
 from ..scene._spectra import AbstractSpectrum
 from ..transport import RecordSpec, SpectralOptions, TraceOptions, trace_spectral
@@ -246,6 +246,28 @@ def _replay_stack(replay: "RenderReplay", tissue):
     return l_s + l_f + replay.specular
 
 
+SQUARED_KERNEL = {
+    kernel: (square, _NORM[2][kernel] ** 2 / _NORM[2][square])
+    for kernel, square in (("box", "box"), ("epanechnikov", "biweight"))
+}
+"""K(d; r)^2 = c / r^2 x K'(d; r) on the surface: kernel -> (K', c) (from the kernels' shapes:
+box^2 = box, (1 - u^2)^2 = biweight)."""
+
+
+@eqx.filter_jit
+def _replay_variance(replay: "RenderReplay", tissue):
+    sh = replay.shading
+    square, c = SQUARED_KERNEL[sh.options.kernel]
+    r_s = sh.radii[0]
+    p = replay.surface.power(tissue)
+    smap = update_map(replay.maps[0], _with_power(replay.surface.records, jnp.concatenate([p * p, jnp.zeros((p.shape[0], 1))], axis=1)))
+    v = estimate_surface(smap, sh.q_xy, kernel=square, radius=r_s).astype(jnp.float64)[:, :-1]
+    v = v * (c / r_s**2) * sh.t_surface[:, None] ** 2
+    h, w = replay.hit.shape
+    v = jnp.where(replay.hit.reshape(-1)[:, None], v, 0.0).T.reshape(v.shape[1], h, w)
+    return v * replay.transmission[:, None, None] ** 2
+
+
 def _with_power(records, power):
     return eqx.tree_at(lambda r: r.power, records, power)
 
@@ -296,6 +318,23 @@ class RenderReplay(eqx.Module):
         """The stack [bands, H, W] at `tissue`: surface + fluorescence + specular (compiled once per
         replay structure; differentiable and vmap-able in `tissue`)."""
         return _replay_stack(self, tissue)
+
+    @property
+    def has_variance(self) -> bool:
+        """Whether `variance` is available: a fixed surface bandwidth and a kernel whose square is
+        a kernel of the map's (box, Epanechnikov)."""
+        return self.shading.options.k is None and self.shading.options.kernel in SQUARED_KERNEL
+
+    def variance(self, tissue: SpectralTissue):
+        """The Monte Carlo variance [bands, H, W] of the replayed surface term at `tissue`, sum_i
+        (K_i P_i(tissue))^2 over the records (each photon leaves one surface record; the volume
+        terms' variance is not included): how noisy the reweighted image is there. It grows as
+        the records' effective sample size drops (`fit` subtracts its growth from chi^2)."""
+        if not self.has_variance:
+            raise ValueError(f"replay variance: needs a fixed surface bandwidth (k = None) and kernel "
+                             f"{' or '.join(map(repr, SQUARED_KERNEL))}; got k = {self.shading.options.k}, "
+                             f"kernel = {self.shading.options.kernel!r}")
+        return _replay_variance(self, tissue)
 
     def effective_sample_size(self, tissue: SpectralTissue) -> dict:
         """Per map, the records' effective sample size at `tissue` relative to the trace [bands]."""
