@@ -58,7 +58,7 @@ def test_re_traces_share_the_replay_structure():
     import dataclasses
 
     options = dataclasses.replace(OPTIONS, step_length=0.01)  # as `fit` fixes it after its first render
-    a, b = (rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,
+    a, b = (rd.render(tissue(p), ENDO, photons=5_000, key=jax.random.key(s), options=options,
                       illumination=rd.Floodlight(0.6), replay=True) for p, s in ((P0, 0), (P0 * jnp.asarray([1.05, 0.97]), 1)))
     assert a.surface_photons != b.surface_photons
     static = [eqx.partition(r.replay, eqx.is_array)[1] for r in (a, b)]
@@ -152,6 +152,7 @@ def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
         np.testing.assert_allclose(np.asarray(rep.variance(tissue(p))), want, rtol=1e-4, atol=1e-6 * want.max())
 
 
+@pytest.mark.slow  # 8 renders, ~30 s on 2 cores (the exactness test above runs by default)
 def test_replay_variance_predicts_the_spread_between_keys():
     """Sum (K_i P_i)^2 is the Monte Carlo variance of a pixel: renders at 8 keys."""
     outs = [render(P0, 40 + s, replay=True) for s in range(8)]
