@@ -58,7 +58,7 @@ def test_re_traces_share_the_replay_structure():
     import dataclasses
 
     options = dataclasses.replace(OPTIONS, step_length=0.01)  # as `fit` fixes it after its first render
-    a, b = (rd.render(tissue(p), ENDO, photons=5_000, key=jax.random.key(s), options=options,
+    a, b = (rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,
                       illumination=rd.Floodlight(0.6), replay=True) for p, s in ((P0, 0), (P0 * jnp.asarray([1.05, 0.97]), 1)))
     assert a.surface_photons != b.surface_photons
     static = [eqx.partition(r.replay, eqx.is_array)[1] for r in (a, b)]
