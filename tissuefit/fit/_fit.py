@@ -47,7 +47,7 @@ import numpy as np
 import optimistix as optx
 
 from ..render import RenderOptions, render
-from ..render._render import SQUARED_KERNEL
+from ..render._render import variance_available
 from ._parameters import FitParameter, Layout
 from ._result import FitResult
 
@@ -194,7 +194,7 @@ def fit(
     t_start = time.perf_counter()
     rel_var = np.zeros(bands.num_bands)
     # the per-pixel variance from the records (sum of squared kernel contributions) where the kernel allows
-    per_pixel = simulation_variance and options.k is None and options.kernel in SQUARED_KERNEL
+    per_pixel = simulation_variance and variance_available(options)
     if simulation_variance and not per_pixel:
         base = layout.tissue(tissue, x)
         s = [do_render(base, jax.random.fold_in(key, 1000 + i)).stack for i in range(2)]

@@ -263,9 +263,19 @@ def _replay_variance(replay: "RenderReplay", tissue):
     smap = update_map(replay.maps[0], _with_power(replay.surface.records, jnp.concatenate([p * p, jnp.zeros((p.shape[0], 1))], axis=1)))
     v = estimate_surface(smap, sh.q_xy, kernel=square, radius=r_s).astype(jnp.float64)[:, :-1]
     v = v * (c / r_s**2) * sh.t_surface[:, None] ** 2
-    h, w = replay.hit.shape
-    v = jnp.where(replay.hit.reshape(-1)[:, None], v, 0.0).T.reshape(v.shape[1], h, w)
-    return v * replay.transmission[:, None, None] ** 2
+    return _image(replay.hit, v) * replay.transmission[:, None, None] ** 2
+
+
+def variance_available(options: "RenderOptions") -> bool:
+    """Whether a replay rendered with `options` has `RenderReplay.variance`: a fixed surface
+    bandwidth (k = None) and a kernel whose square is a kernel of the map's (`SQUARED_KERNEL`)."""
+    return options.k is None and options.kernel in SQUARED_KERNEL
+
+
+def _image(hit, a):
+    """Per-pixel values [P, bands] -> an image [bands, H, W], 0 where the pixel's ray misses (`hit` [H, W])."""
+    h, w = hit.shape
+    return jnp.where(hit.reshape(-1)[:, None], a, 0.0).T.reshape(a.shape[1], h, w)
 
 
 def _with_power(records, power):
@@ -305,14 +315,8 @@ class RenderReplay(eqx.Module):
             vmap_em = update_map(vmap_em, _with_power(self.emissions.records, self.emissions.power(tissue)))
         mua, mus, g = (jnp.asarray(a, jnp.float64) for a in tissue.properties())
         l_s, l_f, _ = _shade(self.shading, mua, mus, g, smap, vmap_arr, vmap_em, linear_g=True)
-        h, w = self.hit.shape
-        nb = l_s.shape[1]
-        mask = self.hit.reshape(-1)[:, None]
-
-        def image(a):
-            return jnp.where(mask, a, 0.0).T.reshape(nb, h, w) * self.transmission[:, None, None]
-
-        return image(l_s), image(l_f)
+        t = self.transmission[:, None, None]
+        return _image(self.hit, l_s) * t, _image(self.hit, l_f) * t
 
     def stack(self, tissue: SpectralTissue):
         """The stack [bands, H, W] at `tissue`: surface + fluorescence + specular (compiled once per
@@ -321,15 +325,14 @@ class RenderReplay(eqx.Module):
 
     @property
     def has_variance(self) -> bool:
-        """Whether `variance` is available: a fixed surface bandwidth and a kernel whose square is
-        a kernel of the map's (box, Epanechnikov)."""
-        return self.shading.options.k is None and self.shading.options.kernel in SQUARED_KERNEL
+        """Whether `variance` is available (`variance_available`: fixed bandwidth, box or Epanechnikov)."""
+        return variance_available(self.shading.options)
 
     def variance(self, tissue: SpectralTissue):
         """The Monte Carlo variance [bands, H, W] of the replayed surface term at `tissue`, sum_i
         (K_i P_i(tissue))^2 over the records (each photon leaves one surface record; the volume
         terms' variance is not included): how noisy the reweighted image is there. It grows as
-        the records' effective sample size drops (`fit` subtracts its growth from chi^2)."""
+        the records' effective sample size drops; `fit` adds it to sigma^2 at each trace point."""
         if not self.has_variance:
             raise ValueError(f"replay variance: needs a fixed surface bandwidth (k = None) and kernel "
                              f"{' or '.join(map(repr, SQUARED_KERNEL))}; got k = {self.shading.options.k}, "
@@ -655,12 +658,7 @@ def render(
     timings["estimate"] = time.perf_counter() - t2
 
     h, w = endoscope.height, endoscope.width
-    mask = hit[:, None]
-
-    def image(a):
-        return np.asarray(jnp.where(mask, a, 0.0)).T.reshape(nb, h, w)
-
-    surface, fluor, spec = image(l_surface), image(l_fluor), image(l_spec)
+    surface, fluor, spec = (np.asarray(_image(hit.reshape(h, w), a)) for a in (l_surface, l_fluor, l_spec))
     transmission = np.ones(nb)
     if observation_filter is not None:
         if not isinstance(observation_filter, AbstractSpectrum):

@@ -129,13 +129,8 @@ class PhotonRecords(eqx.Module):
         `overflow` carried over). E.g. `records.select(~records.emission)`."""
         mask = np.asarray(mask, bool) & (np.arange(self.capacity) < int(self.count))
         cut = lambda a: None if a is None else np.asarray(a)[mask]  # noqa: E731
-        return PhotonRecords(
-            position=cut(self.position), direction=cut(self.direction), power=cut(self.power),
-            band=cut(self.band), converted=cut(self.converted), photon=cut(self.photon),
-            count=int(mask.sum()), overflow=int(self.overflow),
-            emission=cut(self.emission), path=cut(self.path), hits=cut(self.hits),
-            **{k: cut(getattr(self, k)) for k in REPLAY_FIELDS},
-        )
+        return PhotonRecords(count=int(mask.sum()), overflow=int(self.overflow),
+                             **{f: cut(getattr(self, f)) for f in ROW_FIELDS})
 
     def padded(self, rows: int) -> "PhotonRecords":
         """The same records in a buffer of `rows` >= capacity (numpy; the extra rows are zero
@@ -152,10 +147,13 @@ class PhotonRecords(eqx.Module):
             a = np.asarray(a)
             return np.concatenate([a, np.zeros((rows - a.shape[0], *a.shape[1:]), a.dtype)])
 
-        fields = {f: pad(getattr(self, f)) for f in ("position", "direction", "power", "band", "converted",
-                                                    "photon", "emission", "path", "hits", *REPLAY_FIELDS)}
-        return PhotonRecords(count=np.asarray(int(self.count), np.int64), overflow=int(self.overflow), **fields)
+        return PhotonRecords(count=np.asarray(int(self.count), np.int64), overflow=int(self.overflow),
+                             **{f: pad(getattr(self, f)) for f in ROW_FIELDS})
 
 
 REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "exc0", "conv_medium", "conversions")
 """Record fields kept with `RecordSpec.replay` (None otherwise)."""
+
+ROW_FIELDS = ("position", "direction", "power", "band", "converted", "photon", "emission", "path", "hits",
+              *REPLAY_FIELDS)
+"""Every per-record field (one row per record; `select` and `padded` carry each of them)."""
