@@ -230,8 +230,6 @@ def trace_spectral(
         new_lanes=lambda n: idle_lanes(n, config, dtype),
         new_acc=lambda: zeros_acc(config, ndev, dtype),
     )
-    if jax.process_count() > 1:
-        raise NotImplementedError("trace_spectral: multi-process runs are not supported yet; run one process per host")
     return _normalise(acc, photons, scene, config, exhausted)
 
 

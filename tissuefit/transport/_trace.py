@@ -188,8 +188,6 @@ def trace(
         new_acc=lambda: _zeros_acc(tallies, options, layers),
     )
     total = jax.tree.map(lambda a: np.asarray(a).sum(0), acc)
-    if jax.process_count() > 1:
-        total, exhausted = _sum_over_processes(total, exhausted)
     return _normalise(total, photons, scene, tallies, options, exhausted)
 
 
@@ -198,8 +196,9 @@ def run_lanes(kernel, scene, *, key, photons: int, chunks: int, progress, device
 
     Every device of every process takes a contiguous range of photon indices; this process runs
     the ranges of its own devices. `new_lanes(n)` makes n idle lanes, `new_acc()` empty
-    accumulators (its `next_pid` is set here). Returns (accumulators of this process's devices,
-    stacked on a leading axis, as numpy; whether the step budget stopped the run).
+    accumulators (its `next_pid` is set here). Returns (the accumulators of every device, in the
+    order of `devices` and stacked on a leading axis, as numpy: in a multi-process run each
+    process gathers the others' too; whether the step budget stopped the run on any device).
     """
     devices = tuple(jax.devices() if devices is None else devices)
     devices = devices[: min(len(devices), photons)]
@@ -208,6 +207,10 @@ def run_lanes(kernel, scene, *, key, photons: int, chunks: int, progress, device
     mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
     if not mine:
         raise ValueError("devices: none of the given devices belongs to this process")
+    per_process = np.bincount([d.process_index for d in devices])
+    if jax.process_count() > 1 and np.any(per_process != len(mine)):
+        # the processes gather each other's per-device accumulators, stacked: equal counts keep them aligned
+        raise ValueError(f"devices: every process must hold the same number of the given devices, got {per_process.tolist()}")
     starts, stops = edges[mine], edges[np.array(mine) + 1]
     local = tuple(devices[i] for i in mine)
     words = _rng.key_words(key)
@@ -242,17 +245,27 @@ def run_lanes(kernel, scene, *, key, photons: int, chunks: int, progress, device
             progress(int(np.sum(np.asarray(acc.next_pid) - starts)))
         if exhausted:
             break
-    return jax.tree.map(np.asarray, acc), exhausted
+    acc = jax.tree.map(np.asarray, acc)
+    if jax.process_count() > 1:
+        acc, exhausted = _gather_devices(acc, exhausted, mine, ndev)
+    return acc, exhausted
 
 
-def _sum_over_processes(total: _Acc, exhausted: bool) -> tuple[_Acc, bool]:
-    """Add every process's float64 sums (multi-host runs started with `jax.distributed.initialize`)."""
+def _gather_devices(acc, exhausted: bool, mine: list[int], ndev: int):
+    """Every process's per-device accumulators, in the global device order, on every process.
+
+    Multi-host runs (started with `jax.distributed.initialize`): each process holds the stacked
+    accumulators of its own devices; after this, every process holds those of all `ndev` devices,
+    exactly as one process driving all of them would, so sums and record buffers come out the same.
+    """
     from jax.experimental import multihost_utils
 
-    gathered = multihost_utils.process_allgather((total, np.asarray(exhausted)))
-    summed, flags = jax.tree.map(lambda a: np.asarray(a).sum(0), gathered[0]), gathered[1]
-    # next_pid is a per-range cursor, not a sum; nothing downstream reads it.
-    return summed, bool(np.any(flags))
+    leaves, treedef = jax.tree.flatten(acc)
+    order, flags, *gathered = multihost_utils.process_allgather((np.asarray(mine), np.asarray(exhausted), *leaves))
+    order = np.asarray(order).reshape(-1)  # the device index of each gathered row
+    inverse = np.argsort(order)
+    leaves = [np.asarray(a).reshape((-1,) + np.shape(a)[2:])[inverse] for a in gathered]
+    return jax.tree.unflatten(treedef, leaves), bool(np.any(flags))
 
 
 def _normalise(acc: _Acc, photons: int, scene: Scene, tallies: TallySpec, options: TraceOptions, exhausted: bool) -> TraceResult:
