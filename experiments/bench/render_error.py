@@ -16,6 +16,7 @@ import importlib.util
 import json
 import math
 import os
+import resource
 import time
 from pathlib import Path
 
@@ -48,7 +49,11 @@ SETTINGS = {  # label: RenderOptions
 DEFAULT = "epan., auto radius k=48 (default)"
 COLORS = ("k", "tab:blue", "tab:red")
 
-FULL = dict(size=64, photons=(10_000, 30_000, 100_000), ref_photons=400_000)
+# 1e3 .. 1e6 launches: a warm 64 x 64 render costs 22-36 us per launch on 2 cores (load 2-6), so a
+# 1e7-launch render would take 4-6 min warm and more on its first call (x 3 settings x 2 calls), and a
+# reference well beyond it would not fit the 24 GiB machine (~1.6 GiB per 1e6 launches with
+# REF_OPTIONS); the reference, 8x the largest N, peaks at 7.7 GiB (RESULTS.md states each run's)
+FULL = dict(size=64, photons=(1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000), ref_photons=4_000_000)
 QUICK = dict(size=32, photons=(3_000, 10_000), ref_photons=10_000, settings=2)  # the first two settings only
 REF_SEEDS = (1_000_000_300, 1_000_000_301)
 # the reference keeps room for its volume records only (the default 6 per launch would be GBs); the
@@ -103,6 +108,11 @@ def load_or_make_reference(path: Path, size: int, ref_photons: int, force: bool,
             "rows": rows, "seconds": seconds, "made": made, "reused": False}
 
 
+def _peak_rss_gib() -> float:
+    """This process's peak resident memory so far [GiB] (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
 def _ssq(img, mask, wl, group):
     lo, hi = GROUPS[group]
     sel = (wl >= lo - 1e-6) & (wl <= hi + 1e-6)
@@ -114,6 +124,7 @@ def run(out: Path, quick: bool, force: bool, made: str, loads: list) -> dict:
     t0 = time.perf_counter()
     ref = load_or_make_reference(out / "render_reference.npz", cfg["size"], cfg["ref_photons"], force, made)
     loads.append({"after": "render reference", "loadavg": list(os.getloadavg())})
+    rss_ref = None if ref["reused"] else _peak_rss_gib()
     wl = ref["wavelengths"]
     used = list(SETTINGS.items())[: cfg.get("settings", len(SETTINGS))]
     runs = []
@@ -134,7 +145,9 @@ def run(out: Path, quick: bool, force: bool, made: str, loads: list) -> dict:
             "reference": {"settings": ref["settings"], "noise": ref["noise"], "rows": ref["rows"],
                           "seconds": ref["seconds"], "made": ref["made"], "reused": ref["reused"],
                           "covered": float(np.mean(ref["covered"]))},
-            "runs": runs, "seconds": time.perf_counter() - t0}
+            "runs": runs, "seconds": time.perf_counter() - t0,
+            "peak_rss_gib": {"after_reference": rss_ref, "end": _peak_rss_gib(),
+                             "ram_gib": os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30}}
 
 
 def aggregate(part: dict) -> list[dict]:
@@ -219,6 +232,7 @@ def markdown(part: dict, rows: list[dict], pareto: dict, md_table, quick: bool) 
         "- Estimator settings (`RenderOptions`): " + "; ".join(f"**{k}**: `{v}`" for k, v in st["options"].items()) + ".",
         "- Per (setting, N launches): one key; the render is called twice with it (first call: compiles for its "
         "shapes; the second, timed, is the wall time reported as warm; the first call's time is beside it).",
+        f"- N = {', '.join(f'{n:.0e}' for n in st['photons'])} launches." + ("" if quick else " " + _why_stop(part, rows)),
         "- Error = relative RMS sqrt(Σ (I − I_ref)² / Σ I_ref²) over the pixels covered in both, per band group "
         "(" + ", ".join(f"{g} {lo}–{hi} nm" for g, (lo, hi) in st["groups"].items()) + ").",
         f"- Reference: mean of two default-option renders of {ref['settings']['photons']:,} launches (keys "
@@ -240,6 +254,28 @@ def markdown(part: dict, rows: list[dict], pareto: dict, md_table, quick: bool) 
               f"{r['surface_radius_um']:.0f} / {r['volume_radius_um']:.0f}", f"{r['covered_both']:.3f}",
               "**yes**" if r.get("pareto") else "") for r in rr]), ""]
     return "\n".join(lines)
+
+
+def _why_stop(part: dict, rows: list[dict]) -> str:
+    """Why the launch counts stop where they do, from this run's cost of its largest default render."""
+    nmax = max(r["photons"] for r in rows)
+    top = next((r for r in rows if r["quantity"] == "all" and r["setting"] == DEFAULT and r["photons"] == nmax), None)
+    if top is None:
+        return ""
+    per = top["wall_median_s"] / nmax
+    mem = part.get("peak_rss_gib", {})
+    rss, ram = mem.get("after_reference"), mem.get("ram_gib")
+    ref_n = part["reference"]["settings"]["photons"]
+    big, big_ref, k = 10 * nmax, 10 * ref_n, len(part["settings"]["options"])
+    text = (f"They stop at {nmax:.0e} for time and memory: the warm default render at N = {nmax:.0e} took "
+            f"{top['wall_median_s']:.1f} s ({1e6 * per:.1f} µs per launch; trace {top['timings']['trace']:.1f} s; its "
+            f"first call {top['first_s']:.1f} s), so N = {big:.0e} would take ~{big * per / 60:.0f} min per warm render "
+            f"({k} settings, each called twice: ~{2 * k * big * per / 60:.0f} min), and a reference with the same margin "
+            f"({len(REF_SEEDS)} x {big_ref:.0e} launches) ~{len(REF_SEEDS) * big_ref * per / 60:.0f} min")
+    if rss:
+        text += (f" and about ten times the memory of this run's reference, which peaked at {rss:.1f} GiB "
+                 f"({ref_n:,} launches per render, `volume_capacity=1.5`)" + (f"; the machine has {ram:.0f} GiB" if ram else ""))
+    return text + "."
 
 
 def benchmark_lines(part: dict, rows: list[dict], pareto: dict, md_table) -> str:

@@ -2,7 +2,7 @@
 
 Usage (from the repository root):
 
-    .venv/bin/python experiments/bench/run.py            # all parts, ~15 min on 2 loaded cores; writes
+    .venv/bin/python experiments/bench/run.py            # all parts, ~28 min on 2 loaded cores; writes
         experiments/bench/RESULTS.md, results.json, time_vs_error.png, the cached references
         (reference.npz, render_reference.npz, gradient_reference.npz) and the bench section of
         experiments/BENCHMARKS.md
