@@ -114,17 +114,21 @@ def main(argv=None):
                                                  f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
                                                  f"ESS {h['ess_min']:.3f}, moved {h['max_move_sigma']:.3g} sigma, "
                                                  f"{h['seconds']:.1f} s (render {h['seconds_render']:.1f} s, inner solve {h['seconds_solve']:.1f} s)", flush=True))
-        got = dict(zip(result.names, zip(result.values, result.uncertainties)))
+        # the measurement is itself a render with measured-factor x the photons: its Monte Carlo noise
+        # moves the optimum like the fit's own simulation noise / sqrt(factor); a real camera has none
+        spread = np.hypot(result.uncertainties, result.simulation_uncertainties / math.sqrt(args.measured_factor))
+        got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_measurement": t_gen,
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):
             if name not in got:
                 continue
-            v, e = got[name]
+            v, e, e_all = got[name]
             row[name] = {"true": true, "value": v, "uncertainty": e, "rel_error": v / true - 1,
-                         "pull": (v - true) / e if e > 0 else None}
-        v, e = got.get("c_ppix", (TRUTH["c"], 0.0))
+                         "pull": (v - true) / e if e > 0 else None,
+                         "pull_with_measurement_mc": (v - true) / e_all if e_all > 0 else None}
+        v, e, _ = got.get("c_ppix", (TRUTH["c"], 0.0, 0.0))
         row["c_yield"] = {"true": TRUTH["c"] * YIELD, "value": v * YIELD, "uncertainty": e * YIELD}
         rows.append(row)
         write_fit_report(result, out / "fit.json", extra={"truth": TRUTH, "guess": GUESS, "shifts_px": shifts.tolist()})

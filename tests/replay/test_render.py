@@ -152,6 +152,60 @@ def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
         np.testing.assert_allclose(np.asarray(rep.variance(tissue(p))), want, rtol=1e-4, atol=1e-6 * want.max())
 
 
+def _functionals(shape, seed=0):
+    """Three image functionals [3, bands, H, W], correlated with each other through the kernel:
+    the central block's mean, a signed random pattern and one pixel."""
+    rng = np.random.default_rng(seed)
+    w = np.zeros((3, *shape))
+    w[0][BLOCK] = 1.0 / 16
+    w[1] = rng.normal(size=shape)
+    w[2][1, 4, 3] = 1.0
+    return w
+
+
+@pytest.mark.parametrize("kernel", ["epanechnikov", "gaussian"])
+def test_replay_covariance_is_the_sum_over_records(kernel):
+    """`RenderReplay.covariance` against brute-force per-record parts c_im = sum over bands and
+    pixels of w_m K_i P_ib, Cov = c^T c - (sum c)(sum c)^T / N, at the traced tissue and at another;
+    a one-pixel functional's variance is `variance` less the mean-square term."""
+    import dataclasses
+
+    from tissuefit.photonmap._kernels import kernel_weight
+
+    options = dataclasses.replace(OPTIONS, kernel=kernel)
+    got = rd.render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
+                    illumination=rd.Floodlight(0.6), replay=True)
+    rep = got.replay
+    assert rep.surface_only  # no fluorophores: no volume map
+    sh, r = rep.shading, rep.shading.radii[0]
+    rec = rep.surface.records
+    n = int(rec.count)
+    xy = np.asarray(rec.position, np.float32)[:n, :2].astype(np.float64)
+    q = np.asarray(sh.q_xy, np.float32).astype(np.float64)
+    d2 = ((q[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
+    k = np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))  # [P, n]
+    k = k * (np.asarray(sh.t_surface) * np.asarray(rep.hit).reshape(-1))[:, None]
+    w = _functionals(got.stack.shape)
+    w_pix = w.reshape(3, w.shape[1], -1) * np.asarray(rep.transmission)[None, :, None]  # [m, bands, P]
+    for p in (P0, P0 * jnp.asarray([1.2, 0.9])):
+        power = np.asarray(rep.surface.power(tissue(p)))[:n]  # [n, bands]
+        c = np.einsum("mbq,qi,ib->im", w_pix, k, power)
+        want = c.T @ c - np.outer(c.sum(0), c.sum(0)) / got.photons
+        cov = rep.covariance(tissue(p), w)
+        np.testing.assert_allclose(cov, want, rtol=1e-4, atol=1e-6 * np.abs(want).max())
+    assert got.photons == float(rep.photons)
+    if kernel == "epanechnikov":
+        var = np.asarray(rep.variance(tissue(P0)))[1, 4, 3]
+        mean = got.surface[1, 4, 3]
+        np.testing.assert_allclose(rep.covariance(tissue(P0), w[2:])[0, 0], var - mean**2 / got.photons, rtol=1e-4)
+
+
+def test_replay_covariance_refuses_weights_of_another_shape():
+    rep = render(P0, 3, replay=True).replay
+    with pytest.raises(ValueError, match=r"weights have shape \(2, 8, 8\); expected \[m, 2, 8, 8\]"):
+        rep.covariance(tissue(P0), np.zeros((2, 8, 8)))
+
+
 @pytest.mark.slow  # 8 renders, ~30 s on 2 cores (the exactness test above runs by default)
 def test_replay_variance_predicts_the_spread_between_keys():
     """Sum (K_i P_i)^2 is the Monte Carlo variance of a pixel: renders at 8 keys."""
@@ -163,6 +217,18 @@ def test_replay_variance_predicts_the_spread_between_keys():
     ratio = stacks.var(0, ddof=1)[ok].mean() / pred[ok].mean()
     # 7 degrees of freedom per pixel over ~100 correlated pixels: a relative sd of about 0.1
     assert 0.7 < ratio < 1.4, ratio
+    # the covariance of image functionals (pixels correlated through the kernel) against the spread of
+    # the same functionals over the 8 keys: each empirical variance is chi^2 with 7 degrees of freedom
+    # times the true one / 7, here within its two-sided 99 % interval
+    from scipy.stats import chi2
+
+    w = _functionals(stacks.shape[1:])
+    f = np.einsum("mbhw,kbhw->km", w, stacks)
+    pred_cov = np.mean([o.replay.covariance(tissue(P0), w) for o in outs], axis=0)
+    emp = np.cov(f, rowvar=False)
+    lo, hi = chi2(7).ppf([0.005, 0.995]) / 7
+    for m in range(3):
+        assert lo < emp[m, m] / pred_cov[m, m] < hi, (m, emp[m, m], pred_cov[m, m])
 
 
 def test_replay_variance_needs_a_squarable_kernel():

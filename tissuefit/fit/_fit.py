@@ -21,13 +21,23 @@ Outer loop (re-traces) around an inner optimistix solve on the replayed render:
    statistical errors; their mean is the estimate. Then a last render at the optimum gives the
    Jacobian.
 
-Uncertainties: cov_x = (J^T J)^-1 at the optimum, J = d r / d x, mapped to the parameters' units
-by the transforms' derivatives, times max(1, chi^2 / dof) (the Birge ratio: a model or noise
-model too optimistic widens the errors instead of hiding).
+Uncertainties, from the optimum's linear response x - x* = -G (residual noise), G = (J^T J)^-1 J^T,
+J = d r / d x, mapped to the parameters' units by the transforms' derivatives:
+- measurement: G diag(Var[meas] / sigma^2) G^T (plus the priors' rows), times max(1, chi^2 / dof)
+  (the Birge ratio: a model or noise model too optimistic widens the errors instead of hiding);
+- simulation: where the simulated image is the surface term alone (no volume map: no fluorophores,
+  or fluorescence="surface"), the covariance of the functionals <G row, s sim / sigma> over the
+  final render's records (`RenderReplay.covariance`: each photon's part, independent between
+  photons; it keeps the correlation the kernel puts between neighbouring pixels, which the
+  per-pixel sigma^2 cannot). Otherwise (volume maps) (J^T J)^-1 times the Birge ratio for both
+  per-pixel parts, plus the optimum's spread over `simulation_keys` renders at other keys.
 
-Simulation variance: per pixel from the records themselves, Var[sim] = s^2 sum_i (K_i P_i)^2 at the
-trace point (`RenderReplay.variance`; a fixed surface bandwidth and the box or Epanechnikov
-kernel; 6 renders of the droplet at other keys: empirical / predicted variance 0.99). Otherwise
+Simulation variance (in sigma^2, which weighs the pixels): per band from the records themselves,
+q_b = s^2 sum (K_i P_i)^2 / (s sum K_i P_i) over the band's pixels at the trace point
+(`RenderReplay.variance`; a fixed surface bandwidth and the box or Epanechnikov kernel; 6 renders
+of the droplet at other keys: empirical / predicted per-pixel variance 0.99), times the
+measurement: Var[sim] = q_b meas. The render's own per-pixel variance is not used as a weight: it
+is correlated with the pixel's own noise and biased the fit (see `sim_variance`). Otherwise
 from two extra renders at the initial parameters with other keys, as a relative variance per band:
 median over pixels of (s1 - s2)^2 / (2 s0^2) divided by 0.455, the median of chi^2 with one degree
 of freedom (the plain median understated the variance ~2x); Var[sim] = rel_var[band] * sim^2. (Kernel
@@ -132,7 +142,8 @@ def fit(
     - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2 (module docstring).
     - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
     - `simulation_keys`: renders at other keys at the optimum for the simulation part of the
-      uncertainty (0: none); `progress`: called with each re-trace's history entry (a dict).
+      uncertainty where the records cannot give it (renders with volume maps; 0: none); `progress`:
+      called with each re-trace's history entry (a dict).
     Returns a `FitResult`.
     """
     parameters = tuple(parameters)
@@ -229,7 +240,15 @@ def fit(
         if not simulation_variance:
             return 0.0
         if per_pixel:
-            return np.asarray(replay.variance(t)) * scale_value**2
+            # Var[sim] = q_b x the measurement: q_b [measurement units], band b's variance per unit of
+            # signal, sum_i (K_i P_i)^2 / sum_i K_i P_i over its used pixels. The render's own per-pixel
+            # variance would weigh each pixel by its own Monte Carlo noise (a pixel that came out high
+            # has a high sum of squares too, so it weighs less) and bias the fit towards brighter
+            # renders (tests/fit: mua 1.62 / 0.74 against 2.0 / 1.0 at 4 sigma; with q_b: 1.94 / 0.97)
+            v = np.asarray(replay.variance(t)) * scale_value**2
+            ok = use & (sim > 0)
+            q = np.array([v[b][ok[b]].sum() / sim[b][ok[b]].sum() if ok[b].any() else 0.0 for b in range(v.shape[0])])
+            return q[:, None, None] * np.maximum(data, 0.0)
         return rel_var[:, None, None] * sim**2
 
     solver_obj = _solver(solver, rtol, atol)
@@ -311,18 +330,33 @@ def fit(
     dof = max(int(use.sum()) + int(prior_idx.size) - layout.size, 1)
     birge = max(1.0, chi2 / dof)
     cov_sim = np.zeros((layout.size, layout.size))
+    from_records = replay.surface_only
     try:
         cov_x = np.linalg.inv(jac_x.T @ jac_x)
-        cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
-        if simulation_keys:
+        gain = cov_x @ jac_x.T  # [p, residuals]: d x / d (residuals), pixels first, then priors
+        n_px = data.size
+        if from_records:
+            # the optimum responds linearly to both noises: x - x* = -gain (residual noise). The
+            # measurement's part is the sandwich gain diag(Var[meas] / sigma^2) gain^T (+ the priors');
+            # the simulation's is the records' covariance of the functionals <gain row, s sim / sigma>,
+            # with the correlation the kernel puts between pixels (sigma^2 holds its diagonal only)
+            sig = np.asarray(sigma)
+            frac = np.where(use, var_meas / sig**2, 0.0).reshape(-1)
+            cov_meas = (gain[:, :n_px] * frac) @ gain[:, :n_px].T + gain[:, n_px:] @ gain[:, n_px:].T
+            cov_stat = dv_dx @ cov_meas @ dv_dx.T * birge
+            s_opt = float(layout.scale_of(x))
+            weights = np.where(use[None], gain[:, :n_px].reshape(-1, *data.shape) * s_opt / sig[None], 0.0)
+            cov_sim = dv_dx @ replay.covariance(layout.tissue(tissue, x), weights) @ dv_dx.T
+        else:
+            cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
+        if simulation_keys and not from_records:
             # the fit's own Monte Carlo noise: how far the optimum moves with the simulation's random numbers
             # (linear response to renders at other keys; their spread is correlated over the whole image)
             tissue_x = layout.tissue(tissue, x)
             sims = [sim_final] + [np.asarray(do_render(tissue_x, jax.random.fold_in(key, 2000 + i)).stack)
                                   * float(layout.scale_of(x)) for i in range(simulation_keys)]
             mean = np.mean(sims, axis=0)
-            gain = cov_x @ jac_x[: data.size].T  # [p, pixels]: d x / d (residuals)
-            moves = [dv_dx @ (gain @ np.where(use, (si - mean) / np.asarray(sigma), 0.0).reshape(-1)) for si in sims]
+            moves = [dv_dx @ (gain[:, :n_px] @ np.where(use, (si - mean) / np.asarray(sigma), 0.0).reshape(-1)) for si in sims]
             cov_sim = sum(np.outer(m, m) for m in moves) / simulation_keys
         cov = cov_stat + cov_sim
     except np.linalg.LinAlgError:
@@ -346,8 +380,10 @@ def fit(
                   "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
                   "simulation_variance": None if not simulation_variance else (
-                      "per pixel from the records (sum of squared kernel contributions)" if per_pixel else
+                      "per band from the records (sum of squared kernel contributions per unit signal) x the measurement" if per_pixel else
                       "two renders at the initial guess, relative variance per band"),
+                  "simulation_uncertainty": ("the records' covariance of the parameters' residual functionals"
+                                             if from_records else f"spread over {simulation_keys} renders at other keys"),
                   "surface_radius_cm": options.surface_radius},
     )
 

@@ -266,6 +266,31 @@ def _replay_variance(replay: "RenderReplay", tissue):
     return _image(replay.hit, v) * replay.transmission[:, None, None] ** 2
 
 
+def _surface_image(replay: "RenderReplay", power):
+    """The surface term [bands, H, W] of the surface records carrying `power` [n, bands] (linear in it)."""
+    sh = replay.shading
+    counting = jnp.concatenate([power, jnp.ones((power.shape[0], 1), power.dtype)], axis=1)
+    smap = update_map(replay.maps[0], _with_power(replay.surface.records, counting))
+    m = estimate_surface(smap, sh.q_xy, kernel=sh.options.kernel, radius=sh.radii[0], k=sh.options.k).astype(jnp.float64)
+    return _image(replay.hit, m[:, :-1] * sh.t_surface[:, None]) * replay.transmission[:, None, None]
+
+
+@eqx.filter_jit
+def _replay_contributions(replay: "RenderReplay", tissue, weights):
+    """c [n, m]: record i's part of the functional <weights[m], surface term> at `tissue`.
+
+    The surface term is linear in the records' powers P, so c[i, m] = sum_b P[i, b] d<weights[m], .>/dP[i, b]
+    (one reverse-mode pass per functional)."""
+    p = replay.surface.power(tissue)
+    _, pullback = jax.vjp(lambda q: _surface_image(replay, q), p)
+
+    def one(w):
+        (dp,) = pullback(w)
+        return jnp.sum(dp * p, axis=1)
+
+    return jax.lax.map(one, weights).T
+
+
 def variance_available(options: "RenderOptions") -> bool:
     """Whether a replay rendered with `options` has `RenderReplay.variance`: a fixed surface
     bandwidth (k = None) and a kernel whose square is a kernel of the map's (`SQUARED_KERNEL`)."""
@@ -303,6 +328,7 @@ class RenderReplay(eqx.Module):
     specular: Array  # [bands, H, W] (does not depend on the tissue's coefficients)
     transmission: Array  # [bands]
     hit: Array  # [H, W]
+    photons: Array  # [] launches traced (float; an array so that re-traces share compiled code)
 
     def terms(self, tissue: SpectralTissue):
         """(surface, fluorescence) images [bands, H, W] at `tissue` (JAX arrays)."""
@@ -338,6 +364,34 @@ class RenderReplay(eqx.Module):
                              f"{' or '.join(map(repr, SQUARED_KERNEL))}; got k = {self.shading.options.k}, "
                              f"kernel = {self.shading.options.kernel!r}")
         return _replay_variance(self, tissue)
+
+    @property
+    def surface_only(self) -> bool:
+        """Whether the tissue-dependent image is the surface term alone (no volume map: a scene
+        without fluorophores, or fluorescence in "surface" mode), so that `covariance` covers it all."""
+        return self.arrivals is None and self.emissions is None
+
+    def covariance(self, tissue: SpectralTissue, weights) -> np.ndarray:
+        """The Monte Carlo covariance [m, m] of the linear functionals f_m = <weights[m], surface
+        term> of the replayed image at `tissue` (`weights` [m, bands, H, W], units of 1/the image).
+
+        Each launched photon leaves at most one surface record, so the functionals are sums of
+        independent per-photon parts c_i (`_replay_contributions`) and, over N launches,
+
+            Cov[f_m, f_k] = sum_i c_im c_ik - (sum_i c_im)(sum_i c_ik) / N.
+
+        Unlike `variance`, this keeps the correlation a kernel puts between nearby pixels (a record
+        lights all pixels within its bandwidth), and it works for every kernel and for k-NN
+        bandwidths (the maps' kernels are fixed by the records' positions). A fit projects its
+        residuals' Monte Carlo noise onto its parameters with it. Only the surface term is covered:
+        with volume maps (`surface_only` False) the march's own noise is left out."""
+        w = jnp.asarray(weights, jnp.float64)
+        if w.ndim != 4 or w.shape[1:] != (self.transmission.shape[0], *self.hit.shape):
+            raise ValueError(f"replay covariance: weights have shape {tuple(w.shape)}; expected "
+                             f"[m, {self.transmission.shape[0]}, {self.hit.shape[0]}, {self.hit.shape[1]}]")
+        c = np.asarray(_replay_contributions(self, tissue, w), np.float64)
+        total = c.sum(0)
+        return c.T @ c - np.outer(total, total) / float(self.photons)
 
     def effective_sample_size(self, tissue: SpectralTissue) -> dict:
         """Per map, the records' effective sample size at `tissue` relative to the trace [bands]."""
@@ -677,7 +731,8 @@ def render(
         replayed = RenderReplay(surface=rep(surf), arrivals=rep(arrivals) if vmap_arr is not None else None,
                                 emissions=rep(emissions) if vmap_em is not None else None,
                                 maps=(smap, vmap_arr, vmap_em), shading=shading, specular=jnp.asarray(spec),
-                                transmission=jnp.asarray(transmission), hit=jnp.asarray(np.asarray(hit).reshape(h, w)))
+                                transmission=jnp.asarray(transmission), hit=jnp.asarray(np.asarray(hit).reshape(h, w)),
+                                photons=jnp.asarray(float(kept)))
     return RenderResult(
         stack=surface + fluor + spec, surface=surface, fluorescence=fluor, specular=spec,
         wavelengths=tissue.bands.wavelengths, covered=(np.asarray(count) > 0).reshape(h, w) & np.asarray(hit).reshape(h, w),
