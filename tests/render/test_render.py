@@ -167,6 +167,7 @@ def test_march_fluorescence_equals_the_escaping_fluorescence_radiance(key):
     assert abs(march - direct) < 4 * math.hypot(direct_err, march_err), (march, direct, direct_err, march_err)
 
 
+@pytest.mark.slow  # four 20 x 20 renders, ~45 s on 2 cores: over the default suite's budget
 def test_mirror_symmetry_at_normal_view(key):
     """beta = 0: the lights sit at -+x, so the expected image is symmetric under x -> -x (columns
     reversed) and y -> -y; the difference between an image and its mirror is noise only, as large as

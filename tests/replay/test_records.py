@@ -109,7 +109,9 @@ def _fd(seeds, photons, param, h):
     return (a - b) / (2 * h), math.hypot(ea, eb) / (2 * h)
 
 
-@pytest.mark.parametrize("param, h, mode", [("c", 20.0, "per_band"), ("c", 20.0, "shared"), ("mua", 1.5, "shared")])
+@pytest.mark.parametrize("param, h, mode", [
+    # per-band tracing: ~40 s on 2 cores, slow (the same check on shared paths runs by default)
+    pytest.param("c", 20.0, "per_band", marks=pytest.mark.slow), ("c", 20.0, "shared"), ("mua", 1.5, "shared")])
 def test_escaping_fluorescence_gradient_matches_finite_differences(param, h, mode):
     """d (escaping fluorescence) / d c_PpIX and d rd / d mua at 400-416 nm: replayed records (traced
     per band or on shared paths) vs central differences of independent runs."""
