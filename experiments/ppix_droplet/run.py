@@ -70,6 +70,7 @@ def main(argv=None):
     ap.add_argument("--photons", type=int, default=20_000)
     ap.add_argument("--measured-factor", type=int, default=4)
     ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--counts", type=float, default=4000.0)
     ap.add_argument("--max-retraces", type=int, default=6)
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
@@ -87,7 +88,7 @@ def main(argv=None):
     options = rd.RenderOptions(specular_deg=0.0, fluorescence="surface", surface_radius=args.surface_radius)
     ref, dead = 10, 3
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         # every re-trace compiles anew (record counts change): three seeds' executables in one
         # process ran a 24 GiB machine out of memory (RESULTS.md), so start each seed clean
         jax.clear_caches()
@@ -107,6 +108,7 @@ def main(argv=None):
         print(f"seed {seed}: measurement {t_gen:.1f} s, dead bands {(~measured.good).nonzero()[0].tolist()}", flush=True)
         free = [p for p in PARAMETERS if p.name in args.free.split(",")]
         start = {k: (GUESS[k] if (k if k != "c" else "c_ppix") in args.free.split(",") else TRUTH[k]) for k in GUESS}
+        t_fit = time.perf_counter()
         result = tf.fit(measured, sample(bands, **start), free, endoscope=endo, photons=args.photons,
                         key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
                         simulation_keys=args.simulation_keys,
@@ -118,7 +120,8 @@ def main(argv=None):
         # moves the optimum like the fit's own simulation noise / sqrt(factor); a real camera has none
         spread = np.hypot(result.uncertainties, result.simulation_uncertainties / math.sqrt(args.measured_factor))
         got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
-        row = {"seed": seed, "seconds_fit": result.seconds, "seconds_measurement": t_gen,
+        row = {"seed": seed, "seconds_fit": result.seconds, "seconds_total": time.perf_counter() - t_fit,
+               "seconds_measurement": t_gen, "fixed_point_correction": result.settings["fixed_point_correction"],
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):

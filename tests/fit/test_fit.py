@@ -118,3 +118,25 @@ def test_the_outer_loop_tells_jitter_from_drift():
     assert _oscillating(jitter, std, 0.5)
     assert _oscillating(settled, std, 0.5)
     assert not _oscillating(jitter[:2], std, 0.5)  # too few re-traces to tell
+
+
+def test_the_outer_loop_extrapolates_a_geometric_approach():
+    """Three full steps that point the same way and shrink by a steady rho add the rest of the
+    series, rho / (1 - rho) times the last step (capped); turning, growing, unsteady or too few
+    steps add nothing."""
+    from tissuefit.fit._fit import EXTRAPOLATION_CAP, _extrapolation
+
+    std = np.array([0.01, 0.1])
+    d = np.array([0.1, 0.5])
+    assert _extrapolation([d, 0.6 * d], 0.36 * d, std) == pytest.approx(0.6 / 0.4)
+    # the remaining way of the geometric series x_k = x* - d rho^k: one extrapolated step lands on x*
+    x_star, rho = np.array([1.0, -2.0]), 0.6
+    x = [x_star - d * rho**k for k in range(4)]
+    steps = np.diff(x, axis=0)
+    np.testing.assert_allclose(x[3] + _extrapolation(steps[:2], steps[2], std) * steps[2], x_star, rtol=1e-12)
+    assert _extrapolation([d, 0.95 * d], 0.95**2 * d, std) == EXTRAPOLATION_CAP
+    assert _extrapolation([d, 0.9 * d], 1.1 * 0.9 * d, std) == 0.0  # not contracting
+    assert _extrapolation([d, 0.9 * d], 0.5 * 0.9 * d, std) == 0.0  # ratios 0.9 then 0.5: unsteady
+    assert _extrapolation([d, 0.6 * d], 0.36 * np.array([0.1, -0.5]), std) == 0.0  # turned (in standard errors)
+    assert _extrapolation([0.6 * d], 0.36 * d, std) == 0.0  # two steps only
+    assert _extrapolation([np.zeros(2), d], 0.5 * d, std) == 0.0
