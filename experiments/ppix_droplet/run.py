@@ -121,7 +121,7 @@ def main(argv=None):
         spread = np.hypot(result.uncertainties, result.simulation_uncertainties / math.sqrt(args.measured_factor))
         got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_total": time.perf_counter() - t_fit,
-               "seconds_measurement": t_gen, "fixed_point_correction": result.settings["fixed_point_correction"],
+               "seconds_measurement": t_gen, "variance_bias_removed": result.settings["variance_bias_removed"],
                "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):

@@ -22,8 +22,8 @@ Outer loop (re-traces) around an inner optimistix solve on the replayed render:
    forth (net change under half the distance travelled) or ended within `tol_sigma`: the optimum
    then jitters with the trace point's Monte Carlo noise, which does not shrink with the
    statistical errors; their mean is the estimate. Then a last render at the optimum gives the
-   Jacobian, and a converged fit's fixed point is corrected to first order for the gradient of
-   the reweighted render's own variance (`_fixed_point_correction`).
+   Jacobian. Each solve's residuals are shifted so that the gradient of the reweighted render's
+   own Monte Carlo variance no longer biases the re-traces' fixed point (`_variance_shift`).
 
 Uncertainties, from the optimum's linear response x - x* = -G (residual noise), G = (J^T J)^-1 J^T,
 J = d r / d x, mapped to the parameters' units by the transforms' derivatives:
@@ -232,12 +232,12 @@ def fit(
     prior_mean, prior_sd = jnp.asarray(prior_mean, jnp.float64), jnp.asarray(prior_sd, jnp.float64)
 
     def residuals(xv, args):
-        replay, sigma = args
+        replay, sigma, shift = args
         sim = replay.stack(layout.tissue(tissue, xv)) * layout.scale_of(xv)
         r = jnp.where(use_j, (sim - data_j) / sigma, 0.0).reshape(-1)
         if prior_idx.size:
             r = jnp.concatenate([r, (layout.values(xv)[prior_idx] - prior_mean) / prior_sd])
-        return r
+        return r - shift
 
     def sim_variance(replay, t, sim, scale_value):
         """Var[sim] [bands, H, W] at the trace point (units^2 of the measurement)."""
@@ -278,7 +278,9 @@ def fit(
         v_sim = sim_variance(replay, current, rendered.stack * s_now, s_now)
         var = var_meas + v_sim
         sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
-        args = (replay, sigma)
+        # the solve's chi^2 less its bias: the gradient of the reweighted render's own variance
+        shift = _variance_shift(residuals, layout, tissue, replay, x, sigma, use) if replay.has_variance else 0.0
+        args = (replay, sigma, shift)
         chi2_start = float(jnp.sum(residuals(x, args) ** 2))
         sol = optx.least_squares(residuals, solver_obj, x, args, max_steps=inner_steps, throw=False)
         inner_result, n_inner, x_new = _result_message(sol.result), int(sol.stats["num_steps"]), sol.value
@@ -330,17 +332,12 @@ def fit(
     replay = final.replay
     sim_final = np.asarray(replay.stack(layout.tissue(tissue, x))) * float(layout.scale_of(x))
     var = var_meas + sim_variance(replay, layout.tissue(tissue, x), sim_final, float(layout.scale_of(x)))
-    correction = np.zeros(layout.size)
-    if converged and replay.has_variance:
-        correction = _fixed_point_correction(residuals, layout, tissue, replay, x, var, use)
-        x = x + correction
-        sim_final = np.asarray(replay.stack(layout.tissue(tissue, x))) * float(layout.scale_of(x))
     if per_pixel:  # the relative variance per band, for the report
         rel = np.where(use & (sim_final > 0), (var - var_meas) / np.where(sim_final > 0, sim_final, 1.0) ** 2, np.nan)
         rel_var = np.asarray([np.nanmedian(b) if np.isfinite(b).any() else 0.0 for b in rel])
     sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
-    r = np.asarray(residuals(x, (replay, sigma)))
-    jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma)))
+    r = np.asarray(residuals(x, (replay, sigma, 0.0)))
+    jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
     dv_dx = np.asarray(jax.jacfwd(layout.values)(x))
     chi2 = float(np.sum(r**2))
     dof = max(int(use.sum()) + int(prior_idx.size) - layout.size, 1)
@@ -401,32 +398,35 @@ def fit(
                   "simulation_uncertainty": ("the records' covariance of the parameters' residual functionals"
                                              if from_records else f"spread over {simulation_keys} renders at other keys"),
                   "surface_radius_cm": options.surface_radius,
-                  "fixed_point_correction": (np.asarray(layout.values(x)) - np.asarray(layout.values(x - correction))).tolist()},
+                  "variance_bias_removed": bool(replay.has_variance)},
     )
 
 
-def _fixed_point_correction(residuals, layout: Layout, tissue, replay, x, var, use) -> np.ndarray:
-    """The shift from the re-traces' fixed point to the optimum of the expected chi^2 [unconstrained].
+def _variance_shift(residuals, layout: Layout, tissue, replay, x, sigma, use):
+    """The shift u of the whitened residuals that takes the variance bias out of a solve at trace point x.
 
-    A solve at trace point x0 minimises chi^2 of the reweighted render, whose expectation is the
-    true chi^2 plus sum_p s^2 V_p(x) / sigma_p^2, V_p(x) = sum_i (K_i P_i(x))^2 the reweighted
-    pixel's Monte Carlo variance (`RenderReplay.variance`). Its curvature slows the re-traces; its
-    gradient at x0 shifts their fixed point x_f by -H^-1 g_V (H = 2 J^T J, g_V the gradient at x_f,
-    the records' own weights correlated with their own scores). This returns
-    (J^T J)^-1 g_V / 2, first order, from the render at x_f."""
-    sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+    The solve minimises chi^2 of the reweighted render, whose expectation is the true chi^2 plus
+    sum_p s^2 V_p(x) / sigma_p^2, V_p(x) = sum_i (K_i P_i(x))^2 the reweighted pixel's Monte Carlo
+    variance (`RenderReplay.variance`). Its gradient g_V at the trace point (each record's weight
+    correlated with its own score) moves the re-traces' fixed point off the optimum by -H^-1 g_V,
+    H = 2 J^T J: along weakly determined directions by many standard errors (the PpIX droplet's
+    seed 2 drifted to mua -16 %, c -30 %, at a chi^2 ~300 above the truth's). With r - u,
+    u = J (J^T J)^-1 g_V / 2, the solve's gradient at x is lowered by exactly g_V: the linear part
+    of the bias goes, nothing nonlinear is added for the optimiser to exploit (minimising
+    chi^2 - sum V / sigma^2 itself found a wrong optimum, README). The curvature of V, which only
+    slows the re-traces, stays."""
     use_j = jnp.asarray(use)
 
     def noise(xv):
         v = replay.variance(layout.tissue(tissue, xv)) * layout.scale_of(xv) ** 2
         return jnp.sum(jnp.where(use_j, v / sigma**2, 0.0))
 
-    jac = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma)))
+    jac = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
     g_v = np.asarray(jax.grad(noise)(x))
     try:
-        return 0.5 * np.linalg.solve(jac.T @ jac, g_v)
+        return jnp.asarray(0.5 * jac @ np.linalg.solve(jac.T @ jac, g_v))
     except np.linalg.LinAlgError:
-        return np.zeros(layout.size)
+        return 0.0
 
 
 def _result_message(result) -> str:
