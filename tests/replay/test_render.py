@@ -124,10 +124,9 @@ def test_fluorescence_image_gradient_in_the_concentration():
     assert abs(got - fd) <= K * math.hypot(e_got, e_fd), (got, e_got, fd, e_fd)
 
 
-@pytest.mark.parametrize("kernel", ["epanechnikov", "box"])
-def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
-    """`RenderReplay.variance` (squared kernel as a map kernel) against the brute-force sum of
-    (K_i P_i)^2 over every record, at the traced tissue and at another."""
+def _brute_force_kernels(kernel):
+    """A small replay render with `kernel` and its records' surface kernel weights K [pixels, n]
+    computed directly (float32 positions, as the maps hold them)."""
     import dataclasses
 
     from tissuefit.photonmap._kernels import kernel_weight
@@ -136,14 +135,21 @@ def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
     got = rd.render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
                     illumination=rd.Floodlight(0.6), replay=True)
     rep = got.replay
-    assert rep.has_variance
     sh, r = rep.shading, rep.shading.radii[0]
-    rec = rep.surface.records
-    n = int(rec.count)
-    xy = np.asarray(rec.position, np.float32)[:n, :2].astype(np.float64)
+    n = int(rep.surface.records.count)
+    xy = np.asarray(rep.surface.records.position, np.float32)[:n, :2].astype(np.float64)
     q = np.asarray(sh.q_xy, np.float32).astype(np.float64)
     d2 = ((q[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
-    k = np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))  # [P, n]
+    return got, n, np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))
+
+
+@pytest.mark.parametrize("kernel", ["epanechnikov", "box"])
+def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
+    """`RenderReplay.variance` (squared kernel as a map kernel) against the brute-force sum of
+    (K_i P_i)^2 over every record, at the traced tissue and at another."""
+    got, n, k = _brute_force_kernels(kernel)
+    rep, sh = got.replay, got.replay.shading
+    assert rep.has_variance
     for p in (P0, P0 * jnp.asarray([1.2, 0.9])):
         power = np.asarray(rep.surface.power(tissue(p)))[:n]
         want = (k**2 @ power**2) * np.asarray(sh.t_surface)[:, None] ** 2
@@ -168,22 +174,9 @@ def test_replay_covariance_is_the_sum_over_records(kernel):
     """`RenderReplay.covariance` against brute-force per-record parts c_im = sum over bands and
     pixels of w_m K_i P_ib, Cov = c^T c - (sum c)(sum c)^T / N, at the traced tissue and at another;
     a one-pixel functional's variance is `variance` less the mean-square term."""
-    import dataclasses
-
-    from tissuefit.photonmap._kernels import kernel_weight
-
-    options = dataclasses.replace(OPTIONS, kernel=kernel)
-    got = rd.render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
-                    illumination=rd.Floodlight(0.6), replay=True)
-    rep = got.replay
+    got, n, k = _brute_force_kernels(kernel)
+    rep, sh = got.replay, got.replay.shading
     assert rep.surface_only  # no fluorophores: no volume map
-    sh, r = rep.shading, rep.shading.radii[0]
-    rec = rep.surface.records
-    n = int(rec.count)
-    xy = np.asarray(rec.position, np.float32)[:n, :2].astype(np.float64)
-    q = np.asarray(sh.q_xy, np.float32).astype(np.float64)
-    d2 = ((q[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
-    k = np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))  # [P, n]
     k = k * (np.asarray(sh.t_surface) * np.asarray(rep.hit).reshape(-1))[:, None]
     w = _functionals(got.stack.shape)
     w_pix = w.reshape(3, w.shape[1], -1) * np.asarray(rep.transmission)[None, :, None]  # [m, bands, P]
