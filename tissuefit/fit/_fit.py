@@ -13,8 +13,9 @@ Outer loop (re-traces) around an inner optimistix solve on the replayed render:
    `ess_threshold` in every band with records, and each parameter's change within its `max_step`
    (g: 0.03, the replay being first order in g). Each solve is pulled back towards its trace point
    (the reweighted records' variance grows away from it), so full steps shrink geometrically
-   (by 0.65-0.7 per re-trace on the PpIX droplet); when two successive full steps point the same
-   way, the rest of that geometric series is added (Aitken's extrapolation, `_extrapolation`).
+   (by 0.65-0.7 per re-trace on the PpIX droplet); when three successive full steps point the
+   same way and shrink steadily, the rest of that geometric series is added (Aitken's
+   extrapolation, `_extrapolation`).
 4. Stop when no parameter moved by more than `tol_sigma` of its standard error (or relative `rtol`)
    between two re-traces (default 0.5: with common random numbers, re-traces at nearby points still
    move the optimum by a few tenths of a standard error; the demo's saturation jittered by 0.37).
