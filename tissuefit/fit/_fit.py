@@ -297,7 +297,8 @@ def fit(
         jac = np.asarray(jax.jacfwd(residuals)(x_next, args))
         std_x = _std_from_jac(jac)
         step = np.asarray(x_next - x)
-        extra = _extrapolation(steps[-2:], step, std_x) if t_step == 1.0 and len(steps) >= 2 and all(full[-2:]) else 0.0
+        # (`_extrapolation` itself asks for three steps: the two before and this one)
+        extra = _extrapolation(steps[-2:], step, std_x) if t_step == 1.0 and all(full[-2:]) else 0.0
         steps.append(step)
         if extra > 0:
             extra *= _within_step_limits(layout, x_next, extra * step)

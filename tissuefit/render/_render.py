@@ -190,6 +190,15 @@ class _Shading(eqx.Module):
     options: RenderOptions = eqx.field(static=True, default=RenderOptions())
 
 
+def _surface_radiance(sh: _Shading, smap):
+    """The surface term per pixel [P, bands]: the exitance estimated from the surface map, spread
+    over directions by the angular model (T(theta_o) / Z); and the kernel's record count [P] (the
+    map's last power column)."""
+    options = sh.options
+    m = estimate_surface(smap, sh.q_xy, kernel=options.kernel, radius=sh.radii[0], k=options.k).astype(jnp.float64)
+    return m[:, :-1] * sh.t_surface[:, None], m[:, -1]
+
+
 def _shade(sh: _Shading, mua, mus, g, smap, vmap_arr, vmap_em, *, linear_g: bool = False):
     """The surface and volume terms per pixel [P, bands] (and the surface kernel's record count [P]).
 
@@ -199,10 +208,8 @@ def _shade(sh: _Shading, mua, mus, g, smap, vmap_arr, vmap_em, *, linear_g: bool
     does in a replay (the derivative in g evaluated with the traced powers: exact first derivatives,
     an error of order (g - g0)(P - P0) away from the traced point); otherwise at the traced values."""
     options = sh.options
-    r_s, r_v, r_e = sh.radii
-    m = estimate_surface(smap, sh.q_xy, kernel=options.kernel, radius=r_s, k=options.k).astype(jnp.float64)
-    exitance, count = m[:, :-1], m[:, -1]
-    l_surface = exitance * sh.t_surface[:, None]
+    _, r_v, r_e = sh.radii
+    l_surface, count = _surface_radiance(sh, smap)
     l_fluor = jnp.zeros_like(l_surface)
     if sh.pts is None:
         return l_surface, l_fluor, count
@@ -268,11 +275,10 @@ def _replay_variance(replay: "RenderReplay", tissue):
 
 def _surface_image(replay: "RenderReplay", power):
     """The surface term [bands, H, W] of the surface records carrying `power` [n, bands] (linear in it)."""
-    sh = replay.shading
     counting = jnp.concatenate([power, jnp.ones((power.shape[0], 1), power.dtype)], axis=1)
     smap = update_map(replay.maps[0], _with_power(replay.surface.records, counting))
-    m = estimate_surface(smap, sh.q_xy, kernel=sh.options.kernel, radius=sh.radii[0], k=sh.options.k).astype(jnp.float64)
-    return _image(replay.hit, m[:, :-1] * sh.t_surface[:, None]) * replay.transmission[:, None, None]
+    l_surface, _ = _surface_radiance(replay.shading, smap)
+    return _image(replay.hit, l_surface) * replay.transmission[:, None, None]
 
 
 @eqx.filter_jit
