@@ -634,7 +634,9 @@ def _add_fit_parser(commands) -> None:
     fit.add_argument("--solver", choices=("levenberg-marquardt", "gauss-newton", "bfgs"), default="levenberg-marquardt")
     fit.add_argument("--scale", action="store_true", help="also fit a free scale on the simulation (unknown "
                                                           "absolute calibration)")
-    fit.add_argument("--max-retraces", type=int, metavar="N", default=8, help="re-traces at most (default 8)")
+    fit.add_argument("--max-retraces", type=int, metavar="N", default=12, help="re-traces at most (default 12)")
+    fit.add_argument("--average", type=int, metavar="N", default=4,
+                     help="settled solves averaged, each on a render with fresh random numbers (default 4)")
     fit.add_argument("--no-register", action="store_true", help="skip the band-to-band registration")
     fit.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
 
@@ -644,7 +646,7 @@ def _fit_progress(parameters, scale: bool):
     def show(entry: dict) -> None:
         values = ", ".join(f"{v:.4g}" for v in entry["values"])
         print(f"  re-trace {entry['retrace']}: ({values}); chi2 {entry['chi2_start']:.4g} -> {entry['chi2_end']:.4g}, "
-              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, moved {entry['max_move_sigma']:.2g} sigma, "
+              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, settled {entry['samples']}, moved {entry['max_move_sigma']:.2g} sigma, "
               f"{entry['seconds']:.1f} s",
               file=sys.stderr, flush=True)
 
@@ -665,13 +667,14 @@ def _fit(args: argparse.Namespace) -> int:
         photons = spec.photons if args.photons is None else check_positive_int("--photons", args.photons,
                                                                               high=io.MAX_PHOTONS)
         check_positive_int("--max-retraces", args.max_retraces, high=100)
+        check_positive_int("--average", args.average, high=100)
         tissue = initial_values(run.scene.tissue, args.init)
         parameters = parameters_from_names(tissue, [n for n in args.free.split(",") if n.strip()])
         measured = io.prepare_measured(io.read_measured(args.measured), register=not args.no_register)
         result = fit(measured, tissue, parameters, endoscope=spec.endoscope, spectrum=run.scene.spectrum,
                      photons=photons, key=jax.random.key(seed), options=spec.options,
                      observation_filter=spec.observation_filter, scale=args.scale, solver=args.solver,
-                     max_retraces=args.max_retraces, progress=None if args.json else _fit_progress(parameters, args.scale))
+                     max_retraces=args.max_retraces, average=args.average, progress=None if args.json else _fit_progress(parameters, args.scale))
     except ValueError as err:
         raise _InvalidInput(f"{args.measured}: {err}") from None
     report = fit_report(result, extra={"scene": io.scene_to_dict(run), "measured": str(args.measured),

@@ -74,7 +74,8 @@ def main(argv=None):
     ap.add_argument("--counts", type=float, default=4000.0)
     ap.add_argument("--max-retraces", type=int, default=6)
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
-    ap.add_argument("--simulation-keys", type=int, default=2)
+    ap.add_argument("--simulation-keys", type=int, default=2, help="renders for the simulation part where the records cannot give it")
+    ap.add_argument("--average", type=int, default=4, help="settled solves (fresh random numbers each) averaged")
     ap.add_argument("--free", default="mua,a,g,c_ppix", help="parameters to fit (the others stay at the truth)")
     ap.add_argument("--cone-deg", type=float, default=3.0,
                     help="half-angle of the lights' cones [deg]: narrow spots (default) or the paper's 45")
@@ -111,18 +112,21 @@ def main(argv=None):
         t_fit = time.perf_counter()
         result = tf.fit(measured, sample(bands, **start), free, endoscope=endo, photons=args.photons,
                         key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
-                        simulation_keys=args.simulation_keys,
+                        simulation_keys=args.simulation_keys, average=args.average,
                         progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
                                                  f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
-                                                 f"ESS {h['ess_min']:.3f}, moved {h['max_move_sigma']:.3g} sigma, "
+                                                 f"ESS {h['ess_min']:.3f}, settled {h['samples']}, moved {h['max_move_sigma']:.3g} sigma, "
                                                  f"{h['seconds']:.1f} s (render {h['seconds_render']:.1f} s, inner solve {h['seconds_solve']:.1f} s)", flush=True))
         # the measurement is itself a render with measured-factor x the photons: its Monte Carlo noise
-        # moves the optimum like the fit's own simulation noise / sqrt(factor); a real camera has none
-        spread = np.hypot(result.uncertainties, result.simulation_uncertainties / math.sqrt(args.measured_factor))
+        # moves the optimum like one of the fit's renders / sqrt(factor); a real camera has none. The
+        # fit's simulation part is of the mean of its averaged solves: one render's is sqrt(n) x that
+        one_render = result.simulation_uncertainties * math.sqrt(max(result.settings["averaged_solves"], 1))
+        spread = np.hypot(result.uncertainties, one_render / math.sqrt(args.measured_factor))
         got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_total": time.perf_counter() - t_fit,
                "seconds_measurement": t_gen, "variance_bias_removed": result.settings["variance_bias_removed"],
-               "converged": result.converged, "reason": result.reason, "dead_detected": (~measured.good).nonzero()[0].tolist(),
+               "converged": result.converged, "reason": result.reason, "retraces": len(result.history),
+               "sample_spread": result.settings["sample_spread"], "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):
             if name not in got:

@@ -2,29 +2,34 @@
 
 Outer loop (re-traces) around an inner optimistix solve on the replayed render:
 
-1. Render at the current parameters with `replay=True` and the fit's fixed key (common random
-   numbers: every re-trace uses the same random numbers).
+1. Render at the current parameters with `replay=True`; every re-trace draws fresh random numbers
+   (`fold_in(key, re-trace)`), common random numbers hold only within a solve (DESIGN.md §5, §9).
+   Re-tracing with the same key instead makes the re-traces' fixed point a poor estimator: the
+   render's noise then changes only slowly with the trace point, and the fixed-trace-point
+   (pathwise) derivative of a Monte Carlo render misses what jumps (DESIGN.md §5), so along weakly
+   determined directions the re-traces crept by 0.7-0.75 of each step and settled 3-4 times
+   further from the truth than one solve's own noise (PpIX droplet at 24 x 24: a drifted from
+   -0.3 % to -1.4 % and c from +8 % to +11 % over 8 re-traces from the truth; pulls of a of +3.6,
+   +3.7, -4.4 with the fourth session's loop; experiments/ppix_droplet/RESULTS.md).
 2. Inner solve: the stack is `replay.stack(tissue(x))`, an explicit differentiable function of the
    unconstrained parameters x (path reweighting of the traced records). Residuals
    r = mask (s sim - meas) / sigma, sigma^2 = Var[meas] + s^2 Var[sim] (held fixed within a solve),
    plus (v - mean)/sd for each Gaussian prior; solved by Levenberg–Marquardt (default),
-   Gauss–Newton or BFGS.
+   Gauss–Newton or BFGS. Each solve's residuals are shifted so that the gradient of the reweighted
+   render's own Monte Carlo variance does not bias its optimum (`_variance_shift`).
 3. The step is shortened until the records' effective sample size at the new point is at least
    `ess_threshold` in every band with records, and each parameter's change within its `max_step`
-   (g: 0.03, the replay being first order in g). Each solve is pulled back towards its trace point
-   (the reweighted records' variance grows away from it), so full steps shrink geometrically
-   (by 0.65-0.7 per re-trace on the PpIX droplet); when three successive full steps point the
-   same way and shrink steadily, the rest of that geometric series is added (Aitken's
-   extrapolation, `_extrapolation`).
-4. Stop when no parameter moved by more than `tol_sigma` of its standard error (or relative `rtol`)
-   between two re-traces (default 0.5: with common random numbers, re-traces at nearby points still
-   move the optimum by a few tenths of a standard error; the demo's saturation jittered by 0.37).
-   Or stop when the last three re-traces took full steps and every parameter only went back and
-   forth (net change under half the distance travelled) or ended within `tol_sigma`: the optimum
-   then jitters with the trace point's Monte Carlo noise, which does not shrink with the
-   statistical errors; their mean is the estimate. Then a last render at the optimum gives the
-   Jacobian. Each solve's residuals are shifted so that the gradient of the reweighted render's
-   own Monte Carlo variance no longer biases the re-traces' fixed point (`_variance_shift`).
+   (g: 0.03, the replay being first order in g).
+4. A solve's optimum is settled when its step was full and no longer than two renders' Monte
+   Carlo jitter: d^T (2 C)^-1 d within the 99 % quantile of chi^2 with one degree of freedom per
+   parameter, d the step, C one render's covariance of the optimum from the records
+   (`_render_covariance`). A settled optimum is one estimate: the optimum plus that render's noise.
+   The next trace point is the mean of the settled estimates so far; a step that is not settled
+   (still approaching) drops them. After `average` settled estimates (independent renders) their
+   mean is the estimate, and the simulation part of its covariance is one render's divided by their
+   number. `settings["sample_spread"]` compares their scatter with one render's covariance (chi^2
+   and its degrees of freedom). A final render at the estimate, at random numbers no re-trace used,
+   gives the Jacobian, the residual maps and the metrics.
 
 Uncertainties, from the optimum's linear response x - x* = -G (residual noise), G = (J^T J)^-1 J^T,
 J = d r / d x, mapped to the parameters' units by the transforms' derivatives:
@@ -35,7 +40,8 @@ J = d r / d x, mapped to the parameters' units by the transforms' derivatives:
   final render's records (`RenderReplay.covariance`: each photon's part, independent between
   photons; it keeps the correlation the kernel puts between neighbouring pixels, which the
   per-pixel sigma^2 cannot). Otherwise (volume maps) (J^T J)^-1 times the Birge ratio for both
-  per-pixel parts, plus the optimum's spread over `simulation_keys` renders at other keys.
+  per-pixel parts, plus the optimum's spread over `simulation_keys` renders at other keys. Either
+  is one render's, divided by the number of solves averaged.
 
 Simulation variance (in sigma^2, which weighs the pixels): per band from the records themselves,
 q_b = s^2 sum (K_i P_i)^2 / (s sum K_i P_i) over the band's pixels at the trace point
@@ -122,9 +128,9 @@ def fit(
     rtol: float = 1e-5,
     atol: float = 1e-5,
     inner_steps: int = 40,
-    max_retraces: int = 8,
+    max_retraces: int = 12,
     ess_threshold: float = 0.5,
-    tol_sigma: float = 0.5,
+    average: int = 4,
     simulation_variance: bool = True,
     throw: bool = False,
     simulation_keys: int = 4,
@@ -143,7 +149,10 @@ def fit(
     - `scale`: also fit a free positive scale s on the simulation (unknown absolute calibration).
     - `solver`: "levenberg-marquardt" (default), "gauss-newton" or "bfgs"; `rtol`, `atol`,
       `inner_steps`: the inner optimistix solve's.
-    - `max_retraces`, `ess_threshold`, `tol_sigma`: the outer loop (module docstring).
+    - `max_retraces`, `ess_threshold`, `average`: the outer loop (module docstring): at most
+      `max_retraces` re-traces; a step is shortened until every band's effective sample size is at
+      least `ess_threshold`; the estimate is the mean of `average` full-step solves from settled
+      trace points.
     - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2 (module docstring).
     - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
     - `simulation_keys`: renders at other keys at the optimum for the simulation part of the
@@ -162,6 +171,10 @@ def fit(
     _solver(solver, rtol, atol)  # check the name before any work
     if not 0 < ess_threshold < 1:
         raise ValueError(f"fit: ess_threshold = {ess_threshold}; allowed (0, 1)")
+    if int(average) != average or not 1 <= average <= 100:
+        raise ValueError(f"fit: average = {average}; allowed an integer 1..100 (solves averaged)")
+    if int(max_retraces) != max_retraces or not 1 <= max_retraces < FINAL_KEY:
+        raise ValueError(f"fit: max_retraces = {max_retraces}; allowed an integer >= 1")
     data, var_meas, use, wl = _measured_arrays(measured, variance, mask)
     bands = tissue.bands
     if data.shape[0] != bands.num_bands:
@@ -258,15 +271,15 @@ def fit(
 
     solver_obj = _solver(solver, rtol, atol)
     history = []
-    converged, reason = False, f"not converged after {max_retraces} re-traces (parameters still moving)"
+    converged, reason = False, f"not converged after {max_retraces} re-traces"
     std_x = None
     rendered = None
-    trail, full = [np.asarray(x)], []  # x before the first and after every re-trace; whether its step was full
-    steps = []  # each re-trace's step x_next - x before extrapolation
+    samples = []  # optima of the solves whose trace point was itself reached by a full step
     for it in range(max_retraces):
         t_it = time.perf_counter()
         current = layout.tissue(tissue, x)
-        rendered = do_render(current, key)
+        # fresh random numbers at every re-trace (common ones only within a solve): module docstring
+        rendered = do_render(current, key if it == 0 else jax.random.fold_in(key, it))
         replay = rendered.replay
         t_render = time.perf_counter() - t_it
         if scale and it == 0:
@@ -277,8 +290,7 @@ def fit(
                 x = x.at[-1].set(math.log(num / den))
         s_now = float(layout.scale_of(x))
         v_sim = sim_variance(replay, current, rendered.stack * s_now, s_now)
-        var = var_meas + v_sim
-        sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+        sigma = _sigma(var_meas + v_sim, use)
         # the solve's chi^2 less its bias: the gradient of the reweighted render's own variance
         shift = _variance_shift(residuals, layout, tissue, replay, x, sigma, use) if replay.has_variance else 0.0
         args = (replay, sigma, shift)
@@ -289,55 +301,74 @@ def fit(
         if not bool(jnp.all(jnp.isfinite(x_new))):
             reason = f"inner solve returned non-finite parameters at re-trace {it}"
             break
+        if replay.has_variance:
+            # the solve's optimum is pulled back towards the trace point by the growth of the
+            # render's own variance away from it (chi^2 gradient 2 J^T r = g_V(x) there, where the
+            # unbiased optimum has g_V(x_new)): one Newton step takes that out
+            jac_new = np.asarray(jax.jacfwd(residuals)(x_new, args))
+            dg = (_noise_gradient(layout, tissue, replay, x_new, sigma, use)
+                  - _noise_gradient(layout, tissue, replay, x, sigma, use))
+            try:
+                x_new = x_new + jnp.asarray(np.linalg.solve(2.0 * jac_new.T @ jac_new, dg))
+            except np.linalg.LinAlgError:
+                pass
         # shorten the step: ESS and per-parameter step limits
         t_step, ess_min = _limit_step(layout, tissue, replay, x, x_new, ess_threshold)
         x_next = x + t_step * (x_new - x)
         chi2_end = float(jnp.sum(residuals(x_next, args) ** 2))
-        # standard errors in x at the new point (this replay) for the stopping test
-        jac = np.asarray(jax.jacfwd(residuals)(x_next, args))
-        std_x = _std_from_jac(jac)
-        step = np.asarray(x_next - x)
-        # (`_extrapolation` itself asks for three steps: the two before and this one)
-        extra = _extrapolation(steps[-2:], step, std_x) if t_step == 1.0 and all(full[-2:]) else 0.0
-        steps.append(step)
-        if extra > 0:
-            extra *= _within_step_limits(layout, x_next, extra * step)
-            x_next = x_next + extra * step
+        # settled: a full step no longer than the Monte Carlo jitter of two renders' optima. Then the
+        # solve's optimum is one estimate (this render's noise on the optimum); else still on the way
+        jac_new = np.asarray(jax.jacfwd(residuals)(x_new, args))
+        settled_m2 = math.nan
+        if t_step == 1.0:
+            cov_one = _render_covariance(replay, layout.tissue(tissue, x_new), jac_new, sigma, use, data.shape,
+                                         float(layout.scale_of(x_new))) if replay.surface_only else None
+            if cov_one is None:  # volume maps: the per-pixel part only (sigma holds the render's variance)
+                cov_one = _inverse(jac_new.T @ jac_new)
+            step = np.asarray(x_new - x)
+            try:
+                settled_m2 = float(step @ np.linalg.solve(2.0 * cov_one, step))
+            except np.linalg.LinAlgError:
+                pass
+        if settled_m2 <= _settled_bound(layout.size):
+            samples.append(np.asarray(x_new))
+            x_next = jnp.asarray(np.mean(samples, axis=0))  # trace next at the mean of the estimates
+        else:
+            samples.clear()  # still on the way: earlier estimates belong to the approach
+        # standard errors in x at the new point (this replay), for the history
+        std_x = _std_from_jac(jac_new)
         dx = np.abs(np.asarray(x_next - x))
         moved = dx / np.where(np.isfinite(std_x) & (std_x > 0), std_x, np.inf)
         history.append({
             "retrace": it, "values": np.asarray(layout.values(x_next)).tolist(),
             "chi2_start": chi2_start, "chi2_end": chi2_end, "inner_steps": n_inner,
-            "inner_result": inner_result, "step_fraction": float(t_step), "extrapolation": float(extra), "ess_min": ess_min,
-            "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
+            "inner_result": inner_result, "step_fraction": float(t_step), "ess_min": ess_min,
+            "samples": len(samples), "step_jitter_chi2": settled_m2, "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
             "seconds_render": t_render, "seconds_solve": t_solve,
         })
         x = x_next
         if progress is not None:
             progress(history[-1])
-        trail.append(np.asarray(x))
-        full.append(t_step == 1.0)
-        if t_step == 1.0 and np.all((moved < tol_sigma) | (dx < 1e-9)):
-            converged, reason = True, f"parameters moved < {tol_sigma} standard errors between re-traces"
+        if len(samples) >= average:
+            converged, reason = True, (f"{average} full-step solves from settled trace points (fresh random numbers "
+                                       "each) averaged")
             break
-        if len(full) >= OSCILLATION_WINDOW and all(full[-OSCILLATION_WINDOW:]) and _oscillating(
-                trail[-(OSCILLATION_WINDOW + 1):], std_x, tol_sigma):
-            # the re-traces only jitter about the optimum (Monte Carlo noise of the trace point):
-            # their mean is the estimate; the final render's keys measure that noise
-            x = jnp.asarray(np.mean(trail[-OSCILLATION_WINDOW:], axis=0))
-            converged, reason = True, (f"parameters oscillate between the last {OSCILLATION_WINDOW} re-traces "
-                                       "without drifting (Monte Carlo jitter); their mean is the estimate")
-            break
+    else:
+        reason = (f"not converged after {max_retraces} re-traces: {len(samples)} of {average} full-step solves "
+                  "from settled trace points" + (" (their mean is the estimate)" if samples else ""))
     # final render at the optimum: the Jacobian, residuals and metrics there
     seconds_fit = time.perf_counter() - t_start
-    final = do_render(layout.tissue(tissue, x), key)
+    if samples:
+        x = jnp.asarray(np.mean(samples, axis=0))
+    n_avg = max(len(samples), 1)
+    final = do_render(layout.tissue(tissue, x), jax.random.fold_in(key, FINAL_KEY))
     replay = final.replay
     sim_final = np.asarray(replay.stack(layout.tissue(tissue, x))) * float(layout.scale_of(x))
     var = var_meas + sim_variance(replay, layout.tissue(tissue, x), sim_final, float(layout.scale_of(x)))
     if per_pixel:  # the relative variance per band, for the report
         rel = np.where(use & (sim_final > 0), (var - var_meas) / np.where(sim_final > 0, sim_final, 1.0) ** 2, np.nan)
         rel_var = np.asarray([np.nanmedian(b) if np.isfinite(b).any() else 0.0 for b in rel])
-    sigma = jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+    sigma = _sigma(var, use)
     r = np.asarray(residuals(x, (replay, sigma, 0.0)))
     jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
     dv_dx = np.asarray(jax.jacfwd(layout.values)(x))
@@ -359,9 +390,8 @@ def fit(
             frac = np.where(use, var_meas / sig**2, 0.0).reshape(-1)
             cov_meas = (gain[:, :n_px] * frac) @ gain[:, :n_px].T + gain[:, n_px:] @ gain[:, n_px:].T
             cov_stat = dv_dx @ cov_meas @ dv_dx.T * birge
-            s_opt = float(layout.scale_of(x))
-            weights = np.where(use[None], gain[:, :n_px].reshape(-1, *data.shape) * s_opt / sig[None], 0.0)
-            cov_sim = dv_dx @ replay.covariance(layout.tissue(tissue, x), weights) @ dv_dx.T
+            cov_sim = dv_dx @ _render_covariance(replay, layout.tissue(tissue, x), jac_x, sigma, use, data.shape,
+                                                 float(layout.scale_of(x))) @ dv_dx.T
         else:
             cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
         if simulation_keys and not from_records:
@@ -373,9 +403,13 @@ def fit(
             mean = np.mean(sims, axis=0)
             moves = [dv_dx @ (gain[:, :n_px] @ np.where(use, (si - mean) / np.asarray(sigma), 0.0).reshape(-1)) for si in sims]
             cov_sim = sum(np.outer(m, m) for m in moves) / simulation_keys
+        # cov_sim is one render's; the estimate averages n_avg solves on independent renders
+        spread = _sample_spread(samples, layout, cov_sim)
+        cov_sim = cov_sim / n_avg
         cov = cov_stat + cov_sim
     except np.linalg.LinAlgError:
         cov = cov_stat = np.full((layout.size, layout.size), np.nan)
+        spread = None
         converged, reason = False, "J^T J is singular at the optimum: a parameter does not affect the residuals"
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -392,13 +426,15 @@ def fit(
         history=tuple(history), converged=converged, reason=reason, seconds=seconds_fit,
         tissue=layout.tissue(tissue, x), simulation_rel_variance=rel_var, solver=solver,
         settings={"photons": int(photons), "scale": bool(scale), "ess_threshold": ess_threshold,
-                  "tol_sigma": tol_sigma, "max_retraces": max_retraces, "inner_steps": inner_steps,
+                  "average": average, "averaged_solves": len(samples), "sample_spread": spread,
+                  "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
                   "simulation_variance": None if not simulation_variance else (
                       "per band from the records (sum of squared kernel contributions per unit signal) x the measurement" if per_pixel else
                       "two renders at the initial guess, relative variance per band"),
                   "simulation_uncertainty": ("the records' covariance of the parameters' residual functionals"
-                                             if from_records else f"spread over {simulation_keys} renders at other keys"),
+                                             if from_records else f"spread over {simulation_keys} renders at other keys")
+                  + f", divided by the {n_avg} solves averaged",
                   "surface_radius_cm": options.surface_radius,
                   "variance_bias_removed": bool(replay.has_variance)},
     )
@@ -415,20 +451,27 @@ def _variance_shift(residuals, layout: Layout, tissue, replay, x, sigma, use):
     seed 2 drifted to mua -16 %, c -30 %, at a chi^2 ~300 above the truth's). With r - u,
     u = J (J^T J)^-1 g_V / 2, the solve's gradient at x is lowered by exactly g_V: the linear part
     of the bias goes, nothing nonlinear is added for the optimiser to exploit (minimising
-    chi^2 - sum V / sigma^2 itself found a wrong optimum, README). The curvature of V, which only
-    slows the re-traces, stays."""
+    chi^2 - sum V / sigma^2 itself found a wrong optimum, README). The change of g_V between the
+    trace point and the solve's optimum (the curvature of V, which pulls each solve back towards its
+    trace point) is taken out after the solve by one Newton step (`fit`)."""
+    jac = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
+    g_v = _noise_gradient(layout, tissue, replay, x, sigma, use)
+    try:
+        return jnp.asarray(0.5 * jac @ np.linalg.solve(jac.T @ jac, g_v))
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
+def _noise_gradient(layout: Layout, tissue, replay, x, sigma, use) -> np.ndarray:
+    """g_V: the gradient in x of sum_p s^2 V_p(x) / sigma_p^2, the reweighted render's own Monte
+    Carlo variance summed over the used pixels in units of sigma^2."""
     use_j = jnp.asarray(use)
 
     def noise(xv):
         v = replay.variance(layout.tissue(tissue, xv)) * layout.scale_of(xv) ** 2
         return jnp.sum(jnp.where(use_j, v / sigma**2, 0.0))
 
-    jac = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
-    g_v = np.asarray(jax.grad(noise)(x))
-    try:
-        return jnp.asarray(0.5 * jac @ np.linalg.solve(jac.T @ jac, g_v))
-    except np.linalg.LinAlgError:
-        return 0.0
+    return np.asarray(jax.grad(noise)(jnp.asarray(x)))
 
 
 def _result_message(result) -> str:
@@ -443,21 +486,44 @@ def _result_message(result) -> str:
 CHI2_1_MEDIAN = 0.4549364231195724
 """The median of chi^2 with one degree of freedom (scipy.stats.chi2(1).median())."""
 
-OSCILLATION_WINDOW = 3
-"""Re-traces over which `fit` tests for jitter without drift."""
+FINAL_KEY = 4_000_000
+"""`fit`'s final render uses `fold_in(key, FINAL_KEY)`: random numbers no re-trace used."""
 
 
-def _oscillating(points, std, tol: float) -> bool:
-    """True when every parameter, over `points` (unconstrained vectors, one per re-trace), either
-    went back and forth (net change under half the distance travelled: the optimum moving with the
-    trace point's Monte Carlo noise, not a drift towards one) or ended within `tol` x `std` of
-    where it started."""
-    xs = np.asarray(points, np.float64)
-    if xs.shape[0] < 3:
-        return False
-    net, path = np.abs(xs[-1] - xs[0]), np.abs(np.diff(xs, axis=0)).sum(axis=0)
-    std = np.where(np.isfinite(std), std, 0.0)
-    return bool(np.all((net <= 0.5 * path) | (net < tol * std)))
+def _sigma(var: np.ndarray, use: np.ndarray) -> jax.Array:
+    """The residuals' sigma from the total variance; 1 where a sample is not used."""
+    return jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
+
+
+def _inverse(m: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.inv(m)
+    except np.linalg.LinAlgError:
+        return np.full(m.shape, np.inf)
+
+
+def _render_covariance(replay, tissue_x, jac: np.ndarray, sigma, use: np.ndarray, shape, scale_value: float) -> np.ndarray:
+    """One render's Monte Carlo covariance of the optimum [x units]: the records' covariance
+    (`RenderReplay.covariance`) of the functionals <gain row, s sim / sigma>, gain = (J^T J)^-1 J^T
+    over the pixels' residuals (`jac` [residuals, x], pixels first)."""
+    n_px = int(np.prod(shape))
+    gain = _inverse(jac.T @ jac) @ jac.T
+    weights = np.where(use[None], gain[:, :n_px].reshape(-1, *shape) * scale_value / np.asarray(sigma)[None], 0.0)
+    return np.asarray(replay.covariance(tissue_x, weights))
+
+
+def _settled_bound(parameters: int) -> float:
+    """chi^2 bound on a settled step d (`fit`): d^T (2 C)^-1 d, C one render's covariance of the
+    optimum, is chi^2 with `parameters` degrees of freedom when the step is Monte Carlo jitter
+    alone (two renders' independent noise); its 99 % quantile."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(SETTLED_PROBABILITY, parameters))
+
+
+SETTLED_PROBABILITY = 0.99
+"""Quantile of `_settled_bound`: a step from a settled trace point is taken for the approach with
+this probability's complement (1 %), which restarts the averaging."""
 
 
 def _std_from_jac(jac: np.ndarray) -> np.ndarray:
@@ -467,33 +533,21 @@ def _std_from_jac(jac: np.ndarray) -> np.ndarray:
         return np.full(jac.shape[1], np.inf)
 
 
-EXTRAPOLATION_CAP = 2.0
-"""The most `_extrapolation` adds, in units of the last step (a contraction ratio of 2/3)."""
-
-
-def _extrapolation(previous, cur: np.ndarray, std: np.ndarray) -> float:
-    """How much further than the last step the re-traces' fixed point lies, in units of that step.
-
-    Each re-trace's solve is pulled back towards its trace point (the reweighted records' variance
-    grows away from it), so successive full steps point the same way and shrink by a nearly
-    constant ratio rho (0.65-0.7 on the PpIX droplet): a linearly convergent fixed-point iteration.
-    Aitken's extrapolation adds the rest of the geometric series, rho / (1 - rho) times the last
-    step (at most `EXTRAPOLATION_CAP`), when the last three full steps (`previous` two and `cur`,
-    in standard errors) point within ~25 degrees of each other and shrink by ratios below 1 that
-    agree within 0.15; otherwise 0 (early steps, far from the fixed point, do not shrink steadily,
-    and extrapolating them overshot). The fixed point itself is unchanged: at it the steps vanish."""
-    scale = np.where(np.isfinite(std) & (std > 0), std, 1.0)
-    vs = [np.asarray(v) / scale for v in (*previous, cur)]
-    norms = [float(np.linalg.norm(v)) for v in vs]
-    if len(vs) < 3 or min(norms) == 0.0:
-        return 0.0
-    if any(float(a @ b) < 0.9 * na * nb for a, b, na, nb in zip(vs, vs[1:], norms, norms[1:])):
-        return 0.0
-    ratios = [nb / na for na, nb in zip(norms, norms[1:])]
-    rho = ratios[-1]
-    if max(ratios) >= 1.0 or abs(ratios[-1] - ratios[-2]) > 0.15:
-        return 0.0
-    return min(rho / (1.0 - rho), EXTRAPOLATION_CAP)
+def _sample_spread(samples, layout: Layout, cov_one: np.ndarray) -> dict | None:
+    """How the averaged solves scatter against one render's simulation covariance `cov_one`
+    (parameter units): chi^2 = sum_k (v_k - mean)^T cov_one^-1 (v_k - mean), with
+    parameters x (solves - 1) degrees of freedom when the covariance is right. None for fewer than
+    two solves or a singular covariance."""
+    if len(samples) < 2:
+        return None
+    v = np.asarray([np.asarray(layout.values(jnp.asarray(x))) for x in samples])
+    d = v - v.mean(axis=0)
+    try:
+        chi2 = float(np.einsum("ki,ij,kj->", d, np.linalg.inv(cov_one), d))
+    except np.linalg.LinAlgError:
+        return None
+    return {"chi2": chi2, "dof": int(d.shape[1] * (d.shape[0] - 1)), "values": v.tolist(),
+            "std": np.std(v, axis=0, ddof=1).tolist()}
 
 
 def _within_step_limits(layout: Layout, x, move) -> float:
