@@ -630,8 +630,13 @@ def _add_fit_parser(commands) -> None:
                           "blood_saturation=0.5)")
     fit.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for fit.json and fit.png")
     fit.add_argument("--photons", type=int, metavar="N", help="photons per render (overrides [render])")
+    fit.add_argument("--approach-photons", type=int, metavar="N",
+                     help="photons per render until the first settled step (default a quarter of --photons)")
     fit.add_argument("--seed", type=int, metavar="S", help=f"the fit's PRNG seed (default {DEFAULT_SEED})")
-    fit.add_argument("--solver", choices=("levenberg-marquardt", "gauss-newton", "bfgs"), default="levenberg-marquardt")
+    fit.add_argument("--solver", choices=("levenberg-marquardt", "gauss-newton", "bfgs"), default="levenberg-marquardt",
+                     help="the optimistix solve of the replayed render, with --approach solve")
+    fit.add_argument("--approach", choices=("gauss-newton", "solve"), default="gauss-newton",
+                     help="steps until the first settled one: Gauss-Newton at the trace point (default) or the solve")
     fit.add_argument("--scale", action="store_true", help="also fit a free scale on the simulation (unknown "
                                                           "absolute calibration)")
     fit.add_argument("--max-retraces", type=int, metavar="N", default=12, help="re-traces at most (default 12)")
@@ -646,7 +651,7 @@ def _fit_progress(parameters, scale: bool):
     def show(entry: dict) -> None:
         values = ", ".join(f"{v:.4g}" for v in entry["values"])
         print(f"  re-trace {entry['retrace']}: ({values}); chi2 {entry['chi2_start']:.4g} -> {entry['chi2_end']:.4g}, "
-              f"step {entry['step_fraction']:.2g}, ESS {entry['ess_min']:.2f}, settled {entry['samples']}, moved {entry['max_move_sigma']:.2g} sigma, "
+              f"step {entry['step_fraction']:.2g} ({entry['photons']} photons), ESS {entry['ess_min']:.2f}, {entry['phase']}, estimates {entry['samples']}, moved {entry['max_move_sigma']:.2g} sigma, "
               f"{entry['seconds']:.1f} s",
               file=sys.stderr, flush=True)
 
@@ -668,12 +673,14 @@ def _fit(args: argparse.Namespace) -> int:
                                                                               high=io.MAX_PHOTONS)
         check_positive_int("--max-retraces", args.max_retraces, high=100)
         check_positive_int("--average", args.average, high=100)
+        if args.approach_photons is not None:
+            check_positive_int("--approach-photons", args.approach_photons, high=io.MAX_PHOTONS)
         tissue = initial_values(run.scene.tissue, args.init)
         parameters = parameters_from_names(tissue, [n for n in args.free.split(",") if n.strip()])
         measured = io.prepare_measured(io.read_measured(args.measured), register=not args.no_register)
         result = fit(measured, tissue, parameters, endoscope=spec.endoscope, spectrum=run.scene.spectrum,
-                     photons=photons, key=jax.random.key(seed), options=spec.options,
-                     observation_filter=spec.observation_filter, scale=args.scale, solver=args.solver,
+                     photons=photons, approach_photons=args.approach_photons, key=jax.random.key(seed), options=spec.options,
+                     observation_filter=spec.observation_filter, scale=args.scale, solver=args.solver, approach=args.approach,
                      max_retraces=args.max_retraces, average=args.average, progress=None if args.json else _fit_progress(parameters, args.scale))
     except ValueError as err:
         raise _InvalidInput(f"{args.measured}: {err}") from None

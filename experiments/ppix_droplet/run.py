@@ -64,6 +64,10 @@ PARAMETERS = [
 ]
 
 
+MEASURED_CHUNK = 800_000
+"""Photons per render of the measurement (more are traced as several renders, averaged)."""
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=16)
@@ -75,6 +79,8 @@ def main(argv=None):
     ap.add_argument("--max-retraces", type=int, default=6)
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
     ap.add_argument("--simulation-keys", type=int, default=2, help="renders for the simulation part where the records cannot give it")
+    ap.add_argument("--approach-photons", type=int, default=None, help="photons per re-trace until the first settled step (default photons / 4)")
+    ap.add_argument("--approach", default="gauss-newton", choices=("solve", "gauss-newton"), help="how the approach steps (fit's approach=)")
     ap.add_argument("--average", type=int, default=4, help="settled solves (fresh random numbers each) averaged")
     ap.add_argument("--free", default="mua,a,g,c_ppix", help="parameters to fit (the others stay at the truth)")
     ap.add_argument("--cone-deg", type=float, default=3.0,
@@ -95,8 +101,13 @@ def main(argv=None):
         jax.clear_caches()
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
-        truth = rd.render(sample(bands, **TRUTH), endo, photons=args.photons * args.measured_factor,
-                          key=jax.random.key(1_000_000 + seed), options=options).stack
+        # the measurement's photons in renders of at most 8e5 (memory), averaged: one photon map of
+        # that many records would not fit beside the fit's executables
+        total = args.photons * args.measured_factor
+        parts = -(-total // MEASURED_CHUNK)
+        truth = sum(rd.render(sample(bands, **TRUTH), endo, photons=total // parts,
+                              key=jax.random.fold_in(jax.random.key(1_000_000 + seed), k), options=options).stack
+                    for k in range(parts)) / parts
         raw, shifts = io.synthetic_counts(truth, rng=rng, peak_counts=args.counts, read_noise=2.0, max_shift_px=3.0,
                                           reference_band=ref, dead_bands=[dead])
         out = args.out / f"seed{seed}"
@@ -112,15 +123,17 @@ def main(argv=None):
         t_fit = time.perf_counter()
         result = tf.fit(measured, sample(bands, **start), free, endoscope=endo, photons=args.photons,
                         key=jax.random.key(seed), options=options, scale=True, max_retraces=args.max_retraces,
-                        simulation_keys=args.simulation_keys, average=args.average,
+                        simulation_keys=args.simulation_keys, average=args.average, approach_photons=args.approach_photons, approach=args.approach,
                         progress=lambda h: print(f"  re-trace {h['retrace']}: values {np.round(h['values'], 4).tolist()} "
-                                                 f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g}, "
-                                                 f"ESS {h['ess_min']:.3f}, settled {h['samples']}, moved {h['max_move_sigma']:.3g} sigma, "
+                                                 f"chi2 {h['chi2_start']:.4g} -> {h['chi2_end']:.4g}, step {h['step_fraction']:.3g} ({h['photons']} photons), "
+                                                 f"ESS {h['ess_min']:.3f}, {h['phase']}, samples {h['samples']}, hessian ratio {h['noise_hessian_ratio']:.2f}, moved {h['max_move_sigma']:.3g} sigma, "
                                                  f"{h['seconds']:.1f} s (render {h['seconds_render']:.1f} s, inner solve {h['seconds_solve']:.1f} s)", flush=True))
         # the measurement is itself a render with measured-factor x the photons: its Monte Carlo noise
         # moves the optimum like one of the fit's renders / sqrt(factor); a real camera has none. The
         # fit's simulation part is of the mean of its averaged solves: one render's is sqrt(n) x that
-        one_render = result.simulation_uncertainties * math.sqrt(max(result.settings["averaged_solves"], 1))
+        # (through the image's noise alone: `settings["image_noise_std_one_render"]`, one fit render's)
+        one_render = np.asarray(result.settings["image_noise_std_one_render"]
+                                or result.simulation_uncertainties * math.sqrt(max(result.settings["averaged_solves"], 1)))
         spread = np.hypot(result.uncertainties, one_render / math.sqrt(args.measured_factor))
         got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_total": time.perf_counter() - t_fit,

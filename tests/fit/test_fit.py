@@ -80,6 +80,10 @@ def test_bad_inputs_are_refused_with_their_reasons():
         tf.fit(data, t, [MUA], **{**call, "variance": None})
     with pytest.raises(ValueError, match="solver = 'newton'"):
         tf.fit(data, t, [MUA], solver="newton", **call)
+    with pytest.raises(ValueError, match="approach = 'walk'; allowed one of 'solve', 'gauss-newton'"):
+        tf.fit(data, t, [MUA], approach="walk", **call)
+    with pytest.raises(ValueError, match="approach_photons = 0; allowed an integer >= 1"):
+        tf.fit(data, t, [MUA], approach_photons=0, **call)
     with pytest.raises(ValueError, match="all masked"):
         tf.fit(data, t, [MUA], mask=np.zeros((2, 8, 8), bool), **call)
     with pytest.raises(ValueError, match="outside its bounds"):

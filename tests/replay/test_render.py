@@ -156,6 +156,17 @@ def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
         want = np.where(np.asarray(rep.hit).reshape(-1)[:, None], want, 0.0).T.reshape(-1, *rep.hit.shape)
         want = want * np.asarray(rep.transmission)[:, None, None] ** 2
         np.testing.assert_allclose(np.asarray(rep.variance(tissue(p))), want, rtol=1e-4, atol=1e-6 * want.max())
+    # noise_weights: W_ib = sum_p w_bp (K_pi t_p)^2 T_b^2 over hit pixels, so that
+    # sum_p w_p variance_p = sum_i,b W_ib P_ib^2 at any tissue (what a fit's J^T J takes out)
+    w_pix = np.random.default_rng(1).uniform(0.5, 2.0, got.stack.shape)
+    kt = k * (np.asarray(sh.t_surface) * np.asarray(rep.hit).reshape(-1))[:, None]  # [pixels, n]
+    want_w = np.einsum("bq,qi->ib", w_pix.reshape(w_pix.shape[0], -1), kt**2) * np.asarray(rep.transmission)[None, :] ** 2
+    got_w = np.asarray(rep.noise_weights(w_pix))
+    np.testing.assert_allclose(got_w[:n], want_w, rtol=1e-4, atol=1e-6 * want_w.max())
+    assert not np.any(got_w[n:])  # padding records weigh nothing
+    other = tissue(P0 * jnp.asarray([1.2, 0.9]))
+    power = np.asarray(rep.surface.power(other))
+    np.testing.assert_allclose(np.sum(w_pix * np.asarray(rep.variance(other))), np.sum(got_w * power**2), rtol=1e-5)
 
 
 def _functionals(shape, seed=0):

@@ -1,45 +1,59 @@
 """`fit(...)`: tissue parameters from a measured stack (DESIGN.md §9).
 
-Outer loop (re-traces) around an inner optimistix solve on the replayed render:
+Outer loop of re-traces. Each renders at the current parameters with `replay=True`, so the stack
+is `replay.stack(tissue(x))`, an explicit differentiable function of the unconstrained parameters x
+(path reweighting of the traced records). Residuals r = mask (s sim - meas) / sigma,
+sigma^2 = Var[meas] + s^2 Var[sim] (fixed per re-trace), plus (v - mean)/sd for each Gaussian prior.
 
-1. Render at the current parameters with `replay=True`; every re-trace draws fresh random numbers
-   (`fold_in(key, re-trace)`), common random numbers hold only within a solve (DESIGN.md §5, §9).
-   Re-tracing with the same key instead makes the re-traces' fixed point a poor estimator: the
-   render's noise then changes only slowly with the trace point, and the fixed-trace-point
-   (pathwise) derivative of a Monte Carlo render misses what jumps (DESIGN.md §5), so along weakly
-   determined directions the re-traces crept by 0.7-0.75 of each step and settled 3-4 times
-   further from the truth than one solve's own noise (PpIX droplet at 24 x 24: a drifted from
-   -0.3 % to -1.4 % and c from +8 % to +11 % over 8 re-traces from the truth; pulls of a of +3.6,
-   +3.7, -4.4 with the fourth session's loop; experiments/ppix_droplet/RESULTS.md).
-2. Inner solve: the stack is `replay.stack(tissue(x))`, an explicit differentiable function of the
-   unconstrained parameters x (path reweighting of the traced records). Residuals
-   r = mask (s sim - meas) / sigma, sigma^2 = Var[meas] + s^2 Var[sim] (held fixed within a solve),
-   plus (v - mean)/sd for each Gaussian prior; solved by Levenberg–Marquardt (default),
-   Gauss–Newton or BFGS. Each solve's residuals are shifted so that the gradient of the reweighted
-   render's own Monte Carlo variance does not bias its optimum (`_variance_shift`).
-3. The step is shortened until the records' effective sample size at the new point is at least
+1. Fresh random numbers at every re-trace (`fold_in(key, re-trace)`); common random numbers hold
+   only within one re-trace (DESIGN.md §5, §9). Re-tracing with one key made the re-traces' fixed
+   point 3-4 times noisier than one render along weakly determined directions (a's pulls +3.6,
+   +3.7, -4.4 in the fourth session; experiments/ppix_droplet/RESULTS.md).
+2. The approach (phase "approach"), on `approach_photons`: the step of 3 (default), or with
+   `approach="solve"` the inner optimistix solve of the replayed render (`solver`:
+   Levenberg–Marquardt, Gauss–Newton or BFGS), its residuals shifted so that the gradient of the
+   reweighted render's own Monte Carlo variance does not bias it (`_variance_shift`) and a Newton
+   step after it for that variance's growth away from the trace point. The solves cost 20-35 s
+   per re-trace at 128 x 128 x 21 (LM's Jacobians over every pixel) against 4-10 s for the
+   Gauss–Newton step, and fall short of the optimum like Gauss–Newton with J^T J (3).
+3. From the first settled step on (phases "arrive", "sample"), on `photons`: one Gauss–Newton step
+   at the trace point, x + d, d = -(J^T J - D)^-1 J^T (r - u). r is the render's own residual there
+   (nothing reweighted), J the records' likelihood-ratio derivative, u the variance shift, and D
+   (`_noise_hessian`) the part of J^T J that is each record's derivative times itself: the
+   derivative's own noise, which is most of J^T J along weak directions (the PpIX droplet at 2e5
+   photons: the smallest eigenvalue of J^T J - D is 0.13-0.28 of J^T J's). With J^T J itself the
+   steps, and the solves on the replayed render (whose chi^2 carries the same noise), fell short
+   by a constant fraction and crept (10-20 % of the way per re-trace). J^T J - D and J^T r - J^T u
+   are U-statistics (cross terms of different photons only), unbiased.
+4. Every step is shortened until the records' effective sample size at the new point is at least
    `ess_threshold` in every band with records, and each parameter's change within its `max_step`
    (g: 0.03, the replay being first order in g).
-4. A solve's optimum is settled when its step was full and no longer than two renders' Monte
-   Carlo jitter: d^T (2 C)^-1 d within the 99 % quantile of chi^2 with one degree of freedom per
-   parameter, d the step, C one render's covariance of the optimum from the records
-   (`_render_covariance`). A settled optimum is one estimate: the optimum plus that render's noise.
-   The next trace point is the mean of the settled estimates so far; a step that is not settled
-   (still approaching) drops them. After `average` settled estimates (independent renders) their
-   mean is the estimate, and the simulation part of its covariance is one render's divided by their
-   number. `settings["sample_spread"]` compares their scatter with one render's covariance (chi^2
-   and its degrees of freedom). A final render at the estimate, at random numbers no re-trace used,
-   gives the Jacobian, the residual maps and the metrics.
+5. A step is settled when it was full and no longer than two landing points' Monte Carlo jitter:
+   d^T (2 C)^-1 d within the 99 % quantile of chi^2 with one degree of freedom per parameter, C one
+   render's covariance of the landing point (`_landing_covariance`: the render's noise through the
+   gain (J^T J - D)^-1 J^T, plus the derivative's noise on the residuals). The approach's first
+   settled step ends it; the next settled step on all photons starts the sampling ("sample"), and
+   from then on every settled landing point is one estimate (the optimum plus that render's noise);
+   the next trace point is their mean. A step that is not settled clears them (back to "arrive").
+   After `average` estimates (independent renders) their mean is the estimate, the simulation part
+   of its covariance one render's divided by their number; `settings["sample_spread"]` compares
+   their scatter with one render's covariance (chi^2 and its degrees of freedom). A final render at
+   the estimate, at random numbers no re-trace used, gives the Jacobian, the residual maps, the
+   metrics and the covariances.
 
-Uncertainties, from the optimum's linear response x - x* = -G (residual noise), G = (J^T J)^-1 J^T,
-J = d r / d x, mapped to the parameters' units by the transforms' derivatives:
+Uncertainties, from the estimate's linear response x - x* = -G (residual noise), G = H^-1 J^T,
+J = d r / d x, H = J^T J - D (where the records give D; else J^T J), mapped to the parameters'
+units by the transforms' derivatives:
 - measurement: G diag(Var[meas] / sigma^2) G^T (plus the priors' rows), times max(1, chi^2 / dof)
   (the Birge ratio: a model or noise model too optimistic widens the errors instead of hiding);
 - simulation: where the simulated image is the surface term alone (no volume map: no fluorophores,
   or fluorescence="surface"), the covariance of the functionals <G row, s sim / sigma> over the
   final render's records (`RenderReplay.covariance`: each photon's part, independent between
   photons; it keeps the correlation the kernel puts between neighbouring pixels, which the
-  per-pixel sigma^2 cannot). Otherwise (volume maps) (J^T J)^-1 times the Birge ratio for both
+  per-pixel sigma^2 cannot), plus the derivative's noise on the residuals, H^-1 D_r H^-1
+  (`_landing_covariance`; each record's derivative squared, weighted by its pixels' r^2). Without it
+  the droplet's 4 averaged estimates scattered with chi^2 96 on 12 degrees of freedom against the
+  predicted covariance; with it 14.7 and 19.0 on 12. Otherwise (volume maps) (J^T J)^-1 times the Birge ratio for both
   per-pixel parts, plus the optimum's spread over `simulation_keys` renders at other keys. Either
   is one render's, divided by the number of solves averaged.
 
@@ -73,6 +87,7 @@ from ._parameters import FitParameter, Layout
 from ._result import FitResult
 
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "bfgs")
+APPROACHES = ("solve", "gauss-newton")
 
 
 def _solver(name: str, rtol: float, atol: float):
@@ -118,6 +133,8 @@ def fit(
     spectrum=None,
     illumination=None,
     photons: int = 100_000,
+    approach_photons: int | None = None,
+    approach: str = "gauss-newton",
     key=None,
     options: RenderOptions = RenderOptions(),
     observation_filter=None,
@@ -144,6 +161,11 @@ def fit(
     - `parameters`: a sequence of `FitParameter`.
     - `endoscope`, `spectrum`, `illumination`, `photons`, `options`, `observation_filter`: as for
       `tissuefit.render.render`; `key`: the fit's PRNG key, held fixed (common random numbers).
+    - `approach_photons`: photons per re-trace until the first settled step (the approach from the
+      initial guess, whose steps the effective sample size limits whatever the photon count);
+      default `photons` // 4, at least 10 000; `photons` (or more) for none. `approach`: how the
+      approach steps: "gauss-newton" (default: the Gauss–Newton step at the trace point, as after
+      the approach) or "solve" (the inner optimistix `solver` solve of the replayed render).
     - `variance` [units^2]: Var of the measurement (overrides the stack's); `mask`: extra samples to
       leave out ([bands, H, W] bool, True = use).
     - `scale`: also fit a free positive scale s on the simulation (unknown absolute calibration).
@@ -169,12 +191,21 @@ def fit(
     if len(set(names)) != len(names):
         raise ValueError(f"fit: parameter names repeat: {names}")
     _solver(solver, rtol, atol)  # check the name before any work
+    if approach not in APPROACHES:
+        raise ValueError(f"fit: approach = {approach!r}; allowed one of {', '.join(map(repr, APPROACHES))}")
     if not 0 < ess_threshold < 1:
         raise ValueError(f"fit: ess_threshold = {ess_threshold}; allowed (0, 1)")
     if int(average) != average or not 1 <= average <= 100:
         raise ValueError(f"fit: average = {average}; allowed an integer 1..100 (solves averaged)")
     if int(max_retraces) != max_retraces or not 1 <= max_retraces < FINAL_KEY:
         raise ValueError(f"fit: max_retraces = {max_retraces}; allowed an integer >= 1")
+    if int(photons) != photons or photons < 1:
+        raise ValueError(f"fit: photons = {photons}; allowed an integer >= 1")
+    approach_photons = max(int(photons) // 4, APPROACH_PHOTONS_MIN) if approach_photons is None else approach_photons
+    if int(approach_photons) != approach_photons or approach_photons < 1:
+        raise ValueError(f"fit: approach_photons = {approach_photons}; allowed an integer >= 1 (photons per "
+                         "re-trace before the first settled step)")
+    approach_photons = min(int(approach_photons), int(photons))
     data, var_meas, use, wl = _measured_arrays(measured, variance, mask)
     bands = tissue.bands
     if data.shape[0] != bands.num_bands:
@@ -209,9 +240,9 @@ def fit(
         x0.append(np.zeros(1))
     x = jnp.asarray(np.concatenate(x0), jnp.float64)
 
-    def do_render(t, k):
+    def do_render(t, k, n=photons):
         nonlocal options
-        out = render(t, endoscope, spectrum=spectrum, photons=photons, key=k, options=options,
+        out = render(t, endoscope, spectrum=spectrum, photons=n, key=k, options=options,
                      illumination=illumination, observation_filter=observation_filter, replay=True)
         if options.surface_radius is None or options.step_length is None:
             # one bandwidth and march step for every render of the fit: the model's blur must not
@@ -274,12 +305,21 @@ def fit(
     converged, reason = False, f"not converged after {max_retraces} re-traces"
     std_x = None
     rendered = None
-    samples = []  # optima of the solves whose trace point was itself reached by a full step
+    samples = []  # landing points of settled Gauss-Newton steps from arrived trace points
+    # phases: "approach" (approach_photons; inner solves or Gauss-Newton steps, `approach`) until a
+    # settled step; "arrive" (all photons, Gauss-Newton) until a settled step; "sample": every
+    # settled step's landing point is an estimate, an unsettled one clears them and goes back to
+    # "arrive". An automatic bandwidth is fixed at the first render's, so that one has all photons
+    # (the model's blur is then the full render's)
+    phase = "approach"
+    auto_bandwidth = options.surface_radius is None  # (the march step depends on the tissue alone)
+    bound = _settled_bound(layout.size)
     for it in range(max_retraces):
         t_it = time.perf_counter()
         current = layout.tissue(tissue, x)
+        n_now = approach_photons if phase == "approach" and not (it == 0 and auto_bandwidth) else photons
         # fresh random numbers at every re-trace (common ones only within a solve): module docstring
-        rendered = do_render(current, key if it == 0 else jax.random.fold_in(key, it))
+        rendered = do_render(current, key if it == 0 else jax.random.fold_in(key, it), n_now)
         replay = rendered.replay
         t_render = time.perf_counter() - t_it
         if scale and it == 0:
@@ -291,21 +331,33 @@ def fit(
         s_now = float(layout.scale_of(x))
         v_sim = sim_variance(replay, current, rendered.stack * s_now, s_now)
         sigma = _sigma(var_meas + v_sim, use)
-        # the solve's chi^2 less its bias: the gradient of the reweighted render's own variance
-        shift = _variance_shift(residuals, layout, tissue, replay, x, sigma, use) if replay.has_variance else 0.0
+        # the residuals less their bias: the gradient of the reweighted render's own variance
+        jac_x = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
+        shift = _variance_shift(layout, tissue, replay, x, sigma, use, jac_x) if replay.has_variance else 0.0
         args = (replay, sigma, shift)
-        chi2_start = float(jnp.sum(residuals(x, args) ** 2))
-        sol = optx.least_squares(residuals, solver_obj, x, args, max_steps=inner_steps, throw=False)
-        inner_result, n_inner, x_new = _result_message(sol.result), int(sol.stats["num_steps"]), sol.value
+        r_x = np.asarray(residuals(x, args))
+        chi2_start = float(np.sum(r_x**2))
+        # Gauss-Newton from the render at the trace point: its residuals are the render's own (no
+        # reweighting), the Jacobian the records' likelihood-ratio derivative, J^T J less its noise
+        noise_h, noise_r = (_noise_hessian(layout, tissue, replay, x, sigma, use, r_x[: data.size].reshape(data.shape))
+                            if replay.has_variance else (None, None))
+        hess_x, hess_ratio = _unbiased_hessian(jac_x, noise_h)
+        x_gn = x + jnp.asarray(_gauss_newton_step(hess_x, jac_x, r_x))
+        solving = phase == "approach" and approach == "solve"
+        if solving:
+            sol = optx.least_squares(residuals, solver_obj, x, args, max_steps=inner_steps, throw=False)
+            inner_result, n_inner, x_new = _result_message(sol.result), int(sol.stats["num_steps"]), sol.value
+        else:
+            inner_result, n_inner, x_new = "Gauss-Newton step at the trace point", 0, x_gn
         t_solve = time.perf_counter() - t_it - t_render
         if not bool(jnp.all(jnp.isfinite(x_new))):
             reason = f"inner solve returned non-finite parameters at re-trace {it}"
             break
-        if replay.has_variance:
+        jac_new = np.asarray(jax.jacfwd(residuals)(x_new, args)) if solving else None
+        if replay.has_variance and solving:
             # the solve's optimum is pulled back towards the trace point by the growth of the
             # render's own variance away from it (chi^2 gradient 2 J^T r = g_V(x) there, where the
             # unbiased optimum has g_V(x_new)): one Newton step takes that out
-            jac_new = np.asarray(jax.jacfwd(residuals)(x_new, args))
             dg = (_noise_gradient(layout, tissue, replay, x_new, sigma, use)
                   - _noise_gradient(layout, tissue, replay, x, sigma, use))
             try:
@@ -316,31 +368,34 @@ def fit(
         t_step, ess_min = _limit_step(layout, tissue, replay, x, x_new, ess_threshold)
         x_next = x + t_step * (x_new - x)
         chi2_end = float(jnp.sum(residuals(x_next, args) ** 2))
-        # settled: a full step no longer than the Monte Carlo jitter of two renders' optima. Then the
-        # solve's optimum is one estimate (this render's noise on the optimum); else still on the way
-        jac_new = np.asarray(jax.jacfwd(residuals)(x_new, args))
+        # settled: a full step no longer than the Monte Carlo jitter of two landing points
         settled_m2 = math.nan
         if t_step == 1.0:
-            cov_one = _render_covariance(replay, layout.tissue(tissue, x_new), jac_new, sigma, use, data.shape,
-                                         float(layout.scale_of(x_new))) if replay.surface_only else None
-            if cov_one is None:  # volume maps: the per-pixel part only (sigma holds the render's variance)
-                cov_one = _inverse(jac_new.T @ jac_new)
+            if solving:
+                cov_one = _landing_covariance(layout, tissue, replay, x_new, jac_new, None, sigma, use, data.shape)
+            else:
+                cov_one = _landing_covariance(layout, tissue, replay, x, jac_x, hess_x, sigma, use, data.shape, noise_r)
             step = np.asarray(x_new - x)
             try:
                 settled_m2 = float(step @ np.linalg.solve(2.0 * cov_one, step))
             except np.linalg.LinAlgError:
                 pass
-        if settled_m2 <= _settled_bound(layout.size):
+        settled = settled_m2 <= bound
+        if settled and phase == "sample":
             samples.append(np.asarray(x_new))
             x_next = jnp.asarray(np.mean(samples, axis=0))  # trace next at the mean of the estimates
-        else:
+        elif settled:
+            phase = "arrive" if phase == "approach" else "sample"  # arrived: this landing point is the last of the approach
+        elif phase == "sample":
             samples.clear()  # still on the way: earlier estimates belong to the approach
+            phase = "arrive"
         # standard errors in x at the new point (this replay), for the history
-        std_x = _std_from_jac(jac_new)
+        std_x = _std_from_jac(jac_new) if solving else np.sqrt(np.clip(np.diag(_inverse(hess_x)), 0, None))
         dx = np.abs(np.asarray(x_next - x))
         moved = dx / np.where(np.isfinite(std_x) & (std_x > 0), std_x, np.inf)
         history.append({
-            "retrace": it, "values": np.asarray(layout.values(x_next)).tolist(),
+            "retrace": it, "phase": phase, "photons": n_now, "values": np.asarray(layout.values(x_next)).tolist(),
+            "gauss_newton_values": np.asarray(layout.values(x_gn)).tolist(), "noise_hessian_ratio": hess_ratio,
             "chi2_start": chi2_start, "chi2_end": chi2_end, "inner_steps": n_inner,
             "inner_result": inner_result, "step_fraction": float(t_step), "ess_min": ess_min,
             "samples": len(samples), "step_jitter_chi2": settled_m2, "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
@@ -350,12 +405,12 @@ def fit(
         if progress is not None:
             progress(history[-1])
         if len(samples) >= average:
-            converged, reason = True, (f"{average} full-step solves from settled trace points (fresh random numbers "
-                                       "each) averaged")
+            converged, reason = True, (f"the landing points of {average} settled Gauss-Newton steps (fresh random "
+                                       "numbers each) averaged")
             break
     else:
-        reason = (f"not converged after {max_retraces} re-traces: {len(samples)} of {average} full-step solves "
-                  "from settled trace points" + (" (their mean is the estimate)" if samples else ""))
+        reason = (f"not converged after {max_retraces} re-traces: {len(samples)} of {average} settled Gauss-Newton "
+                  "steps from arrived trace points" + (" (their mean is the estimate)" if samples else ""))
     # final render at the optimum: the Jacobian, residuals and metrics there
     seconds_fit = time.perf_counter() - t_start
     if samples:
@@ -376,9 +431,14 @@ def fit(
     dof = max(int(use.sum()) + int(prior_idx.size) - layout.size, 1)
     birge = max(1.0, chi2 / dof)
     cov_sim = np.zeros((layout.size, layout.size))
+    image_noise = None
     from_records = replay.surface_only
+    # J^T J less the derivative's own noise (`_noise_hessian`): the gain of the Gauss-Newton steps
+    noise_h, noise_r = (_noise_hessian(layout, tissue, replay, x, sigma, use, r[: data.size].reshape(data.shape))
+                        if replay.has_variance else (None, None))
+    hess_final, _ = _unbiased_hessian(jac_x, noise_h)
     try:
-        cov_x = np.linalg.inv(jac_x.T @ jac_x)
+        cov_x = np.linalg.inv(hess_final)
         gain = cov_x @ jac_x.T  # [p, residuals]: d x / d (residuals), pixels first, then priors
         n_px = data.size
         if from_records:
@@ -390,8 +450,12 @@ def fit(
             frac = np.where(use, var_meas / sig**2, 0.0).reshape(-1)
             cov_meas = (gain[:, :n_px] * frac) @ gain[:, :n_px].T + gain[:, n_px:] @ gain[:, n_px:].T
             cov_stat = dv_dx @ cov_meas @ dv_dx.T * birge
-            cov_sim = dv_dx @ _render_covariance(replay, layout.tissue(tissue, x), jac_x, sigma, use, data.shape,
-                                                 float(layout.scale_of(x))) @ dv_dx.T
+            cov_sim = dv_dx @ _landing_covariance(layout, tissue, replay, x, jac_x, hess_final, sigma, use, data.shape,
+                                                  noise_r) @ dv_dx.T
+            # the part from the render's noise in the image alone (what a measurement that is itself a
+            # Monte Carlo render would add, scaled by its photons)
+            image_noise = dv_dx @ _render_covariance(replay, layout.tissue(tissue, x), jac_x, sigma, use, data.shape,
+                                                     float(layout.scale_of(x)), hess=hess_final) @ dv_dx.T
         else:
             cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
         if simulation_keys and not from_records:
@@ -425,8 +489,10 @@ def fit(
         residuals=resid_map, simulated=sim_final, measured=data, mask=use, wavelengths=np.asarray(bands.wavelengths),
         history=tuple(history), converged=converged, reason=reason, seconds=seconds_fit,
         tissue=layout.tissue(tissue, x), simulation_rel_variance=rel_var, solver=solver,
-        settings={"photons": int(photons), "scale": bool(scale), "ess_threshold": ess_threshold,
+        settings={"photons": int(photons), "approach_photons": approach_photons, "scale": bool(scale), "ess_threshold": ess_threshold,
                   "average": average, "averaged_solves": len(samples), "sample_spread": spread,
+                  "approach": approach,
+                  "image_noise_std_one_render": None if image_noise is None else np.sqrt(np.clip(np.diag(image_noise), 0, None)).tolist(),
                   "max_retraces": max_retraces, "inner_steps": inner_steps,
                   "rtol": rtol, "atol": atol, "pixels_per_band": n_pix, "simulation_keys": simulation_keys,
                   "simulation_variance": None if not simulation_variance else (
@@ -440,7 +506,56 @@ def fit(
     )
 
 
-def _variance_shift(residuals, layout: Layout, tissue, replay, x, sigma, use):
+def _gauss_newton_step(hess: np.ndarray, jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """-hess^-1 J^T r (zeros where hess is singular)."""
+    try:
+        return -np.linalg.solve(hess, jac.T @ r)
+    except np.linalg.LinAlgError:
+        return np.zeros(jac.shape[1])
+
+
+def _noise_hessian(layout: Layout, tissue, replay, x, sigma, use, residuals=None):
+    """D [x, x]: the part of J^T J that is each record's derivative times itself,
+    sum_p sum_i j_ip j_ip^T (j_ip record i's part of pixel p's whitened residual's derivative).
+
+    J^T J of a Monte Carlo render is E[J]^T E[J] plus the derivative's own noise, which D estimates;
+    along weakly determined directions that noise is as large as the signal, and Gauss–Newton steps
+    with J^T J fell short of the optimum by a constant fraction (the PpIX droplet: 10-20 % of the
+    way per re-trace). J^T J - D is the U-statistic (cross terms only, i != k) and unbiased, as the
+    shift (`_variance_shift`, the same diagonal terms of J^T r) is for the gradient. D = J_rho^T
+    J_rho, rho_ib = s sqrt(W_ib) P_ib(x), W from `RenderReplay.noise_weights` (surface term only).
+
+    With `residuals` (the whitened residual map [bands, H, W]) each pixel's term is weighted by its
+    residual squared: sum_p r_p^2 sum_i j_ip j_ip^T, the covariance of the derivative's noise
+    projected on the residuals (J^T r's noise from J's), which moves a Gauss–Newton step by
+    H^-1 (that) H^-1 even where the render's own noise in r is small.
+
+    Returns (D, D_r): D_r None without `residuals` (one Jacobian of the records' powers serves both)."""
+    pix = jnp.where(jnp.asarray(use), 1.0 / jnp.asarray(sigma) ** 2, 0.0)
+    t = jax.jacfwd(lambda xv: replay.surface.power(layout.tissue(tissue, xv)) * layout.scale_of(xv))(jnp.asarray(x))
+
+    def weighted(pixel_weights):  # sum_ib W_ib dP_ib dP_ib^T
+        return np.asarray(jnp.einsum("nbp,nb,nbq->pq", t, replay.noise_weights(pixel_weights), t))
+
+    return weighted(pix), (None if residuals is None else weighted(pix * jnp.asarray(residuals) ** 2))
+
+
+def _unbiased_hessian(jac: np.ndarray, noise: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """(J^T J - D, the smallest eigenvalue ratio of J^T J - D to J^T J): J^T J itself when D is
+    None or J^T J - D is not positive definite (too few photons for the correction)."""
+    h = jac.T @ jac
+    if noise is None:
+        return h, 1.0
+    corrected = h - noise
+    try:
+        scale = np.sqrt(np.outer(np.diag(h), np.diag(h)))
+        ratio = float(np.linalg.eigvalsh(corrected / scale).min() / np.linalg.eigvalsh(h / scale).min())
+    except np.linalg.LinAlgError:
+        return h, math.nan
+    return (corrected, ratio) if ratio > 0.05 else (h, ratio)
+
+
+def _variance_shift(layout: Layout, tissue, replay, x, sigma, use, jac: np.ndarray):
     """The shift u of the whitened residuals that takes the variance bias out of a solve at trace point x.
 
     The solve minimises chi^2 of the reweighted render, whose expectation is the true chi^2 plus
@@ -454,7 +569,6 @@ def _variance_shift(residuals, layout: Layout, tissue, replay, x, sigma, use):
     chi^2 - sum V / sigma^2 itself found a wrong optimum, README). The change of g_V between the
     trace point and the solve's optimum (the curvature of V, which pulls each solve back towards its
     trace point) is taken out after the solve by one Newton step (`fit`)."""
-    jac = np.asarray(jax.jacfwd(residuals)(x, (replay, sigma, 0.0)))
     g_v = _noise_gradient(layout, tissue, replay, x, sigma, use)
     try:
         return jnp.asarray(0.5 * jac @ np.linalg.solve(jac.T @ jac, g_v))
@@ -486,6 +600,10 @@ def _result_message(result) -> str:
 CHI2_1_MEDIAN = 0.4549364231195724
 """The median of chi^2 with one degree of freedom (scipy.stats.chi2(1).median())."""
 
+APPROACH_PHOTONS_MIN = 10_000
+"""`fit`'s default approach_photons is a quarter of the photons, but not below this (capped at
+photons): a 6 x 6 test fit's solve at 750 photons jumped to a quarter of the truth."""
+
 FINAL_KEY = 4_000_000
 """`fit`'s final render uses `fold_in(key, FINAL_KEY)`: random numbers no re-trace used."""
 
@@ -495,6 +613,23 @@ def _sigma(var: np.ndarray, use: np.ndarray) -> jax.Array:
     return jnp.asarray(np.sqrt(np.where(use, np.maximum(var, 1e-300), 1.0)))
 
 
+def _landing_covariance(layout: Layout, tissue, replay, x, jac, hess, sigma, use, shape, derivative_noise=None):
+    """One render's Monte Carlo covariance [x units] of a landing point: of a solve's optimum
+    (`hess` None: J^T J, the records' covariance of the gain functionals) or of a Gauss-Newton step
+    from x (`hess` the unbiased J^T J - D): the render's noise in the residuals through the gain
+    H^-1 J^T (`_render_covariance`) plus the derivative's noise on the residuals, H^-1 D_r H^-1
+    (D_r = `derivative_noise`, from `_noise_hessian`). Volume maps: H^-1 (sigma holds the per-pixel variance)."""
+    h = jac.T @ jac if hess is None else hess
+    tissue_x = layout.tissue(tissue, x)
+    if not replay.surface_only:
+        return _inverse(h)
+    cov = _render_covariance(replay, tissue_x, jac, sigma, use, shape, float(layout.scale_of(x)), hess=h)
+    if derivative_noise is not None:
+        h_inv = _inverse(h)
+        cov = cov + h_inv @ derivative_noise @ h_inv
+    return cov
+
+
 def _inverse(m: np.ndarray) -> np.ndarray:
     try:
         return np.linalg.inv(m)
@@ -502,12 +637,13 @@ def _inverse(m: np.ndarray) -> np.ndarray:
         return np.full(m.shape, np.inf)
 
 
-def _render_covariance(replay, tissue_x, jac: np.ndarray, sigma, use: np.ndarray, shape, scale_value: float) -> np.ndarray:
+def _render_covariance(replay, tissue_x, jac: np.ndarray, sigma, use: np.ndarray, shape, scale_value: float,
+                       hess: np.ndarray | None = None) -> np.ndarray:
     """One render's Monte Carlo covariance of the optimum [x units]: the records' covariance
-    (`RenderReplay.covariance`) of the functionals <gain row, s sim / sigma>, gain = (J^T J)^-1 J^T
-    over the pixels' residuals (`jac` [residuals, x], pixels first)."""
+    (`RenderReplay.covariance`) of the functionals <gain row, s sim / sigma>, gain = H^-1 J^T
+    over the pixels' residuals (`jac` [residuals, x], pixels first; H = `hess`, default J^T J)."""
     n_px = int(np.prod(shape))
-    gain = _inverse(jac.T @ jac) @ jac.T
+    gain = _inverse(jac.T @ jac if hess is None else hess) @ jac.T
     weights = np.where(use[None], gain[:, :n_px].reshape(-1, *shape) * scale_value / np.asarray(sigma)[None], 0.0)
     return np.asarray(replay.covariance(tissue_x, weights))
 

@@ -263,11 +263,18 @@ box^2 = box, (1 - u^2)^2 = biweight)."""
 
 @eqx.filter_jit
 def _replay_variance(replay: "RenderReplay", tissue):
+    p = replay.surface.power(tissue)
+    return _variance_image(replay, p * p)
+
+
+def _variance_image(replay: "RenderReplay", power_squared):
+    """sum_i K_i^2 q_i [bands, H, W] of the surface records carrying q = `power_squared` [n, bands]
+    (linear in q): the surface term's Monte Carlo variance when q = P^2."""
     sh = replay.shading
     square, c = SQUARED_KERNEL[sh.options.kernel]
     r_s = sh.radii[0]
-    p = replay.surface.power(tissue)
-    smap = update_map(replay.maps[0], _with_power(replay.surface.records, jnp.concatenate([p * p, jnp.zeros((p.shape[0], 1))], axis=1)))
+    q = power_squared
+    smap = update_map(replay.maps[0], _with_power(replay.surface.records, jnp.concatenate([q, jnp.zeros((q.shape[0], 1))], axis=1)))
     v = estimate_surface(smap, sh.q_xy, kernel=square, radius=r_s).astype(jnp.float64)[:, :-1]
     v = v * (c / r_s**2) * sh.t_surface[:, None] ** 2
     return _image(replay.hit, v) * replay.transmission[:, None, None] ** 2
@@ -398,6 +405,19 @@ class RenderReplay(eqx.Module):
         c = np.asarray(_replay_contributions(self, tissue, w), np.float64)
         total = c.sum(0)
         return c.T @ c - np.outer(total, total) / float(self.photons)
+
+    def noise_weights(self, pixel_weights):
+        """W [n, bands]: sum over pixels of pixel_weights [bands, H, W] x record i's squared kernel
+        weight, so that sum_p pixel_weights_p variance_p(tissue) = sum_i,b W_ib P_ib(tissue)^2 (the
+        records' powers P, `surface.power`). A fit's Gauss–Newton matrix J^T J holds
+        sum_i,b W_ib dP_ib dP_ib^T of noise (each record's derivative times itself), which it takes out
+        with these weights. Needs `has_variance`."""
+        if not self.has_variance:
+            raise ValueError("replay noise_weights: needs a fixed surface bandwidth and the box or Epanechnikov kernel")
+        q0 = jnp.zeros((self.surface.records.power.shape[0], self.transmission.shape[0]), jnp.float64)
+        _, pullback = jax.vjp(lambda q: _variance_image(self, q), q0)
+        (w,) = pullback(jnp.asarray(pixel_weights, jnp.float64))
+        return w
 
     def effective_sample_size(self, tissue: SpectralTissue) -> dict:
         """Per map, the records' effective sample size at `tissue` relative to the trace [bands]."""
