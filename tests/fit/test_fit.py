@@ -154,3 +154,37 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_solves():
     with pytest.raises(ValueError, match="average = 0; allowed an integer 1..100"):
         tf.fit(clean, tissue(truth), [MUA], endoscope=endo, photons=100, options=OPTIONS, illumination=LIGHT,
                variance=variance, average=0)
+
+
+def test_the_noise_hessian_is_each_records_derivative_times_itself():
+    """`_noise_hessian` (the squared-kernel pullback `RenderReplay.noise_weights` and one Jacobian of
+    the records' powers) against the brute-force sum over records i of J_i^T J_i, J_i the derivative
+    of record i's own part of the whitened image; and weighted by the residuals squared (D_r)."""
+    from tissuefit.fit._fit import _noise_hessian
+    from tissuefit.fit._parameters import Layout
+    from tissuefit.render._render import _surface_image
+
+    endo = rd.Endoscope(beta_deg=0.0, fov_deg=20.0, width=4, height=4, distance=1.0)
+    t = tissue([2.0, 1.0])
+    out = rd.render(t, endo, photons=250, key=jax.random.key(5), options=OPTIONS, illumination=LIGHT, replay=True)
+    replay, layout = out.replay, Layout((MUA,), ((2,),))
+    x = jnp.log(jnp.asarray([2.0, 1.0]))
+    rng = np.random.default_rng(2)
+    sigma = jnp.asarray(rng.uniform(0.5, 2.0, out.stack.shape) * out.stack.mean())
+    use = rng.uniform(size=out.stack.shape) > 0.2
+    r_map = rng.normal(size=out.stack.shape)
+    n = int(replay.surface.records.count)
+    assert n > 20
+
+    def own(i, xv):  # record i's part of the whitened image [bands, H, W]
+        p = replay.surface.power(layout.tissue(t, xv))
+        one = jnp.where(jnp.arange(p.shape[0]) == i, 1.0, 0.0)[:, None]
+        return jnp.where(use, _surface_image(replay, p * one) / sigma, 0.0)
+
+    j = np.asarray(jax.vmap(lambda i: jax.jacfwd(lambda xv: own(i, xv))(x))(jnp.arange(n)))  # [n, b, H, W, p]
+    want = np.einsum("ibhwp,ibhwq->pq", j, j)
+    want_r = np.einsum("ibhwp,bhw,ibhwq->pq", j, r_map**2, j)
+    got, got_r = _noise_hessian(layout, t, replay, x, sigma, use, r_map)
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    np.testing.assert_allclose(got_r, want_r, rtol=1e-4)
+    assert _noise_hessian(layout, t, replay, x, sigma, use)[1] is None
