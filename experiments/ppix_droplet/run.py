@@ -79,7 +79,7 @@ def main(argv=None):
     ap.add_argument("--max-retraces", type=int, default=6)
     ap.add_argument("--surface-radius", type=float, default=0.03, help="kernel bandwidth [cm] of truth and fit")
     ap.add_argument("--simulation-keys", type=int, default=2, help="renders for the simulation part where the records cannot give it")
-    ap.add_argument("--approach-photons", type=int, default=None, help="photons per re-trace until the first settled step (default photons / 4)")
+    ap.add_argument("--approach-photons", type=int, default=None, help="photons per re-trace until the first settled step (default fit's: a quarter of --photons, at least 10 000)")
     ap.add_argument("--approach", default="gauss-newton", choices=("solve", "gauss-newton"), help="how the approach steps (fit's approach=)")
     ap.add_argument("--average", type=int, default=4, help="settled solves (fresh random numbers each) averaged")
     ap.add_argument("--free", default="mua,a,g,c_ppix", help="parameters to fit (the others stay at the truth)")

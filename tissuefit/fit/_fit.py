@@ -173,8 +173,8 @@ def fit(
       `inner_steps`: the inner optimistix solve's.
     - `max_retraces`, `ess_threshold`, `average`: the outer loop (module docstring): at most
       `max_retraces` re-traces; a step is shortened until every band's effective sample size is at
-      least `ess_threshold`; the estimate is the mean of `average` full-step solves from settled
-      trace points.
+      least `ess_threshold`; the estimate is the mean of the landing points of `average` settled
+      Gauss–Newton steps.
     - `simulation_variance`: add the simulation's Monte Carlo variance to sigma^2 (module docstring).
     - `throw`: raise `RuntimeError` with the reason when the fit does not converge.
     - `simulation_keys`: renders at other keys at the optimum for the simulation part of the
@@ -372,9 +372,9 @@ def fit(
         settled_m2 = math.nan
         if t_step == 1.0:
             if solving:
-                cov_one = _landing_covariance(layout, tissue, replay, x_new, jac_new, None, sigma, use, data.shape)
+                cov_one, _ = _landing_covariance(layout, tissue, replay, x_new, jac_new, None, sigma, use, data.shape)
             else:
-                cov_one = _landing_covariance(layout, tissue, replay, x, jac_x, hess_x, sigma, use, data.shape, noise_r)
+                cov_one, _ = _landing_covariance(layout, tissue, replay, x, jac_x, hess_x, sigma, use, data.shape, noise_r)
             step = np.asarray(x_new - x)
             try:
                 settled_m2 = float(step @ np.linalg.solve(2.0 * cov_one, step))
@@ -390,7 +390,7 @@ def fit(
             samples.clear()  # still on the way: earlier estimates belong to the approach
             phase = "arrive"
         # standard errors in x at the new point (this replay), for the history
-        std_x = _std_from_jac(jac_new) if solving else np.sqrt(np.clip(np.diag(_inverse(hess_x)), 0, None))
+        std_x = _std_of(jac_new.T @ jac_new if solving else hess_x)
         dx = np.abs(np.asarray(x_next - x))
         moved = dx / np.where(np.isfinite(std_x) & (std_x > 0), std_x, np.inf)
         history.append({
@@ -450,12 +450,11 @@ def fit(
             frac = np.where(use, var_meas / sig**2, 0.0).reshape(-1)
             cov_meas = (gain[:, :n_px] * frac) @ gain[:, :n_px].T + gain[:, n_px:] @ gain[:, n_px:].T
             cov_stat = dv_dx @ cov_meas @ dv_dx.T * birge
-            cov_sim = dv_dx @ _landing_covariance(layout, tissue, replay, x, jac_x, hess_final, sigma, use, data.shape,
-                                                  noise_r) @ dv_dx.T
-            # the part from the render's noise in the image alone (what a measurement that is itself a
-            # Monte Carlo render would add, scaled by its photons)
-            image_noise = dv_dx @ _render_covariance(replay, layout.tissue(tissue, x), jac_x, sigma, use, data.shape,
-                                                     float(layout.scale_of(x)), hess=hess_final) @ dv_dx.T
+            # image_noise: the part from the render's noise in the image alone (what a measurement that
+            # is itself a Monte Carlo render would add, scaled by its photons)
+            landing, image = _landing_covariance(layout, tissue, replay, x, jac_x, hess_final, sigma, use, data.shape,
+                                                 noise_r)
+            cov_sim, image_noise = dv_dx @ landing @ dv_dx.T, dv_dx @ image @ dv_dx.T
         else:
             cov_stat = dv_dx @ cov_x @ dv_dx.T * birge
         if simulation_keys and not from_records:
@@ -498,9 +497,10 @@ def fit(
                   "simulation_variance": None if not simulation_variance else (
                       "per band from the records (sum of squared kernel contributions per unit signal) x the measurement" if per_pixel else
                       "two renders at the initial guess, relative variance per band"),
-                  "simulation_uncertainty": ("the records' covariance of the parameters' residual functionals"
+                  "simulation_uncertainty": ("the records' covariance of the parameters' residual functionals plus "
+                                             "the derivative's noise on the residuals"
                                              if from_records else f"spread over {simulation_keys} renders at other keys")
-                  + f", divided by the {n_avg} solves averaged",
+                  + f", divided by the {n_avg} estimates averaged",
                   "surface_radius_cm": options.surface_radius,
                   "variance_bias_removed": bool(replay.has_variance)},
     )
@@ -618,16 +618,17 @@ def _landing_covariance(layout: Layout, tissue, replay, x, jac, hess, sigma, use
     (`hess` None: J^T J, the records' covariance of the gain functionals) or of a Gauss-Newton step
     from x (`hess` the unbiased J^T J - D): the render's noise in the residuals through the gain
     H^-1 J^T (`_render_covariance`) plus the derivative's noise on the residuals, H^-1 D_r H^-1
-    (D_r = `derivative_noise`, from `_noise_hessian`). Volume maps: H^-1 (sigma holds the per-pixel variance)."""
+    (D_r = `derivative_noise`, from `_noise_hessian`). Volume maps: H^-1 (sigma holds the per-pixel variance).
+
+    Returns (the covariance, its image-noise part: the first term alone; None for volume maps)."""
     h = jac.T @ jac if hess is None else hess
-    tissue_x = layout.tissue(tissue, x)
     if not replay.surface_only:
-        return _inverse(h)
-    cov = _render_covariance(replay, tissue_x, jac, sigma, use, shape, float(layout.scale_of(x)), hess=h)
-    if derivative_noise is not None:
-        h_inv = _inverse(h)
-        cov = cov + h_inv @ derivative_noise @ h_inv
-    return cov
+        return _inverse(h), None
+    image = _render_covariance(replay, layout.tissue(tissue, x), jac, sigma, use, shape, float(layout.scale_of(x)), hess=h)
+    if derivative_noise is None:
+        return image, image
+    h_inv = _inverse(h)
+    return image + h_inv @ derivative_noise @ h_inv, image
 
 
 def _inverse(m: np.ndarray) -> np.ndarray:
@@ -662,11 +663,9 @@ SETTLED_PROBABILITY = 0.99
 this probability's complement (1 %), which restarts the averaging."""
 
 
-def _std_from_jac(jac: np.ndarray) -> np.ndarray:
-    try:
-        return np.sqrt(np.clip(np.diag(np.linalg.inv(jac.T @ jac)), 0, None))
-    except np.linalg.LinAlgError:
-        return np.full(jac.shape[1], np.inf)
+def _std_of(hess: np.ndarray) -> np.ndarray:
+    """Standard errors in x from a Gauss-Newton matrix (inf where it is singular)."""
+    return np.sqrt(np.clip(np.diag(_inverse(hess)), 0, None))
 
 
 def _sample_spread(samples, layout: Layout, cov_one: np.ndarray) -> dict | None:
