@@ -148,6 +148,10 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_solves():
     assert got.converged, got.reason
     assert got.settings["averaged_solves"] == 2 and got.settings["sample_spread"]["dof"] == 2
     assert [h["samples"] for h in seen][-1] == 2 and len(seen) == len(got.history) <= 8
+    # the steps' J^T J - D is the mean over every render after the approach (one more each re-trace)
+    counts = [h["curvature_renders"] for h in seen]
+    assert counts[0] == 0 and counts[-1] >= 2 + 1  # the burn-in step and the two estimates
+    assert all(b - a in (0, 1) for a, b in zip(counts, counts[1:])) and counts[-1] == len(seen) - counts.count(0)
     one = got.simulation_uncertainties * math.sqrt(2)  # one render's; the measurement has 10x the photons
     spread = np.hypot(got.uncertainties, one / math.sqrt(10))
     assert np.all(np.abs(got.values - truth) <= K * spread), (got.values, spread)

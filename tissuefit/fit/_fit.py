@@ -24,7 +24,9 @@ sigma^2 = Var[meas] + s^2 Var[sim] (fixed per re-trace), plus (v - mean)/sd for 
    photons: the smallest eigenvalue of J^T J - D is 0.13-0.28 of J^T J's). With J^T J itself the
    steps, and the solves on the replayed render (whose chi^2 carries the same noise), fell short
    by a constant fraction and crept (10-20 % of the way per re-trace). J^T J - D and J^T r - J^T u
-   are U-statistics (cross terms of different photons only), unbiased.
+   are U-statistics (cross terms of different photons only), unbiased. J^T J and D are averaged
+   over all these renders (their trace points stay within a few renders' jitter of each other):
+   along g, one render's J^T J - D at 8e5 photons was indefinite in half the re-traces.
 4. Every step is shortened until the records' effective sample size at the new point is at least
    `ess_threshold` in every band with records, and each parameter's change within its `max_step`
    (g: 0.03, the replay being first order in g).
@@ -314,6 +316,7 @@ def fit(
     phase = "approach"
     auto_bandwidth = options.surface_radius is None  # (the march step depends on the tissue alone)
     bound = _settled_bound(layout.size)
+    curvature = []  # (J^T J, D) of every all-photon render after the approach: their mean is the steps' H
     for it in range(max_retraces):
         t_it = time.perf_counter()
         current = layout.tissue(tissue, x)
@@ -341,7 +344,14 @@ def fit(
         # reweighting), the Jacobian the records' likelihood-ratio derivative, J^T J less its noise
         noise_h, noise_r = (_noise_hessian(layout, tissue, replay, x, sigma, use, r_x[: data.size].reshape(data.shape))
                             if replay.has_variance else (None, None))
-        hess_x, hess_ratio = _unbiased_hessian(jac_x, noise_h)
+        if phase != "approach" and noise_h is not None:
+            # after the approach the trace points stay within a few renders' jitter of each other:
+            # H from the mean of their J^T J and D (each unbiased), whose noise along weak directions
+            # (g: J^T J - D of one render is indefinite in half the re-traces at 8e5 photons) shrinks
+            curvature.append((jac_x.T @ jac_x, noise_h))
+            hess_x, hess_ratio = _unbiased_hessian(*_mean_curvature(curvature))
+        else:
+            hess_x, hess_ratio = _unbiased_hessian(jac_x.T @ jac_x, noise_h)
         x_gn = x + jnp.asarray(_gauss_newton_step(hess_x, jac_x, r_x))
         solving = phase == "approach" and approach == "solve"
         if solving:
@@ -398,6 +408,7 @@ def fit(
             "gauss_newton_values": np.asarray(layout.values(x_gn)).tolist(), "noise_hessian_ratio": hess_ratio,
             "chi2_start": chi2_start, "chi2_end": chi2_end, "inner_steps": n_inner,
             "inner_result": inner_result, "step_fraction": float(t_step), "ess_min": ess_min,
+            "curvature_renders": len(curvature),
             "samples": len(samples), "step_jitter_chi2": settled_m2, "max_move_sigma": float(np.max(moved)), "seconds": time.perf_counter() - t_it,
             "seconds_render": t_render, "seconds_solve": t_solve,
         })
@@ -436,7 +447,10 @@ def fit(
     # J^T J less the derivative's own noise (`_noise_hessian`): the gain of the Gauss-Newton steps
     noise_h, noise_r = (_noise_hessian(layout, tissue, replay, x, sigma, use, r[: data.size].reshape(data.shape))
                         if replay.has_variance else (None, None))
-    hess_final, _ = _unbiased_hessian(jac_x, noise_h)
+    if noise_h is not None:  # with the curvature of the renders after the approach (the loop's H)
+        hess_final, _ = _unbiased_hessian(*_mean_curvature(curvature + [(jac_x.T @ jac_x, noise_h)]))
+    else:
+        hess_final, _ = _unbiased_hessian(jac_x.T @ jac_x, None)
     try:
         cov_x = np.linalg.inv(hess_final)
         gain = cov_x @ jac_x.T  # [p, residuals]: d x / d (residuals), pixels first, then priors
@@ -540,10 +554,9 @@ def _noise_hessian(layout: Layout, tissue, replay, x, sigma, use, residuals=None
     return weighted(pix), (None if residuals is None else weighted(pix * jnp.asarray(residuals) ** 2))
 
 
-def _unbiased_hessian(jac: np.ndarray, noise: np.ndarray | None) -> tuple[np.ndarray, float]:
-    """(J^T J - D, the smallest eigenvalue ratio of J^T J - D to J^T J): J^T J itself when D is
-    None or J^T J - D is not positive definite (too few photons for the correction)."""
-    h = jac.T @ jac
+def _unbiased_hessian(h: np.ndarray, noise: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """(J^T J - D, the smallest eigenvalue ratio of J^T J - D to J^T J) from h = J^T J and D: J^T J
+    itself when D is None or J^T J - D is not positive definite (too few photons for the correction)."""
     if noise is None:
         return h, 1.0
     corrected = h - noise
@@ -553,6 +566,11 @@ def _unbiased_hessian(jac: np.ndarray, noise: np.ndarray | None) -> tuple[np.nda
     except np.linalg.LinAlgError:
         return h, math.nan
     return (corrected, ratio) if ratio > 0.05 else (h, ratio)
+
+
+def _mean_curvature(pairs) -> tuple[np.ndarray, np.ndarray]:
+    """The mean (J^T J, D) over renders [(J^T J, D), ...]: J^T J - D of the mean is unbiased like each's."""
+    return np.mean([h for h, _ in pairs], axis=0), np.mean([d for _, d in pairs], axis=0)
 
 
 def _variance_shift(layout: Layout, tissue, replay, x, sigma, use, jac: np.ndarray):
