@@ -1,10 +1,17 @@
 """Test configuration: float64 available, strict dtype promotion, a key fixture."""
 
+import os
+
 import jax
 import pytest
 
-import tissuefit  # noqa: F401  (enables float64)
+import tissuefit
 
+# float64 and one CPU device per core, as the command line sets them up (tissuefit.configure); no
+# persistent compilation cache, so that every run compiles what it tests
+tissuefit.configure(compilation_cache=None)
+# the command line calls configure() itself: no persistent cache for the CLI tests either
+os.environ.setdefault("TISSUEFIT_CACHE_DIR", "off")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 

@@ -1,27 +1,13 @@
 """tissuefit: differentiable Monte Carlo light transport in layered tissue (JAX).
 
-Importing tissuefit enables JAX's 64-bit mode: tallies are accumulated in float64 whatever the
-photon state's working precision (float32 by default), and float64 tracing is available on request.
+Importing tissuefit changes no JAX setting. Tallies are float64 whatever the photon state's working
+precision: call `tissuefit.configure()` once at start-up (float64, one CPU device per core, the
+persistent compilation cache), or let each entry point switch float64 on for its own duration
+(`tissuefit._setup`).
 """
 
-import os as _os
-
-import jax as _jax
-
-# One XLA CPU device per core, so photon ranges are sharded over all cores (DESIGN.md §10): XLA's
-# own intra-op threading of the step loop is erratic, one device per core is not. This only takes
-# effect when JAX's backends are not initialised yet, and never overrides a user's own setting.
-if _jax.config.jax_num_cpu_devices == -1 and "xla_force_host_platform_device_count" not in _os.environ.get(
-    "XLA_FLAGS", ""
-):
-    try:
-        _jax.config.update("jax_num_cpu_devices", len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1))
-    except RuntimeError:  # backends already initialised by the caller: keep what they have
-        pass
-
-_jax.config.update("jax_enable_x64", True)
-
-from .scene import (  # noqa: E402
+from ._setup import configure as configure, default_cache_dir as default_cache_dir
+from .scene import (
     DEFAULT_BANDS as DEFAULT_BANDS,
     AbstractSource as AbstractSource,
     BandGrid as BandGrid,
@@ -53,7 +39,7 @@ from .scene import (  # noqa: E402
     Scene as Scene,
     paper_tissue as paper_tissue,
 )
-from .transport import (  # noqa: E402
+from .transport import (
     PhotonRecords as PhotonRecords,
     RecordSpec as RecordSpec,
     SpectralOptions as SpectralOptions,
@@ -65,8 +51,8 @@ from .transport import (  # noqa: E402
     trace_spectral as trace_spectral,
     trace_reference as trace_reference,
 )
-from . import photonmap as photonmap  # noqa: E402
-from .photonmap import (  # noqa: E402
+from . import photonmap as photonmap
+from .photonmap import (
     SurfaceMap as SurfaceMap,
     VolumeMap as VolumeMap,
     build_surface_map as build_surface_map,
@@ -76,12 +62,12 @@ from .photonmap import (  # noqa: E402
     knn_radius as knn_radius,
     update_map as update_map,
 )
-from . import render as render  # noqa: E402
-from .render import (  # noqa: E402
+from . import render as render
+from .render import (
     Endoscope as Endoscope,
     Floodlight as Floodlight,
     RenderOptions as RenderOptions,
     RenderResult as RenderResult,
 )
 # `tissuefit.fit` is the function; the package's other names: `from tissuefit.fit import ...`
-from .fit import FitParameter as FitParameter, FitResult as FitResult, fit as fit  # noqa: E402
+from .fit import FitParameter as FitParameter, FitResult as FitResult, fit as fit

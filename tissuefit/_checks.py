@@ -8,7 +8,19 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+
+
+def f64(value):
+    """A scene field's numbers in float64 without JAX's global 64-bit flag: numpy float64 for
+    concrete values (scene modules hold host data; the tracer casts to its working precision), a
+    JAX array in the widest float JAX allows for JAX arrays and tracers (so that a scene built inside
+    jit, grad or vmap keeps its tracers)."""
+    if isinstance(value, jax.Array):
+        return jnp.asarray(value, jnp.result_type(float))
+    return np.asarray(value, np.float64)
 
 
 def is_concrete(value) -> bool:

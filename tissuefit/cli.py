@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from . import io
+from ._setup import configure
 from .render import render
 from .scene import Fluorophore
 from ._atomic import atomic_writer
@@ -706,6 +707,7 @@ def _fit(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `tissuefit` command; returns the exit status (2 for invalid input)."""
     args = _parser().parse_args(argv)
+    configure()  # float64 tallies, one CPU device per core, the persistent compilation cache
     try:
         return {"simulate": _simulate, "render": _render, "check": _check, "compare": _compare,
                 "fit": _fit, "synthesize": _synthesize}[args.command](args)

@@ -50,9 +50,11 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001  (tissuefit configures one XLA CPU device per core)
+import tissuefit as tf
 import jax
 from tissuefit.render import Endoscope, RenderOptions, render
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))

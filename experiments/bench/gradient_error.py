@@ -20,11 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001
+import tissuefit as tf
 from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 import jax
 import jax.numpy as jnp
 from tissuefit import replay
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 PARAMS = ("mua", "mus", "g")
 THETA0 = np.array([20.0, 200.0, 0.9])  # tf.paper_tissue(): mua, mus [1/cm], g

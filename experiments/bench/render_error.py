@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001
+import tissuefit as tf
 from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 import jax
 from tissuefit.render import Endoscope, RenderOptions
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 ROOT = Path(__file__).resolve().parents[2]
 

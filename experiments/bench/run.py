@@ -47,9 +47,11 @@ from typing import Callable
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001  (configures one XLA CPU device per core before JAX starts)
+import tissuefit as tf
 import jax
 import jax.numpy as jnp
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

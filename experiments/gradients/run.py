@@ -32,11 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001  (configures one XLA CPU device per core before JAX starts)
+import tissuefit as tf
 import jax
 import jax.numpy as jnp
 from tissuefit import replay
 from tissuefit.render import Endoscope, RenderOptions, render
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))

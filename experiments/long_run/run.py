@@ -44,10 +44,12 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit as tf  # noqa: I001  (configures one XLA CPU device per core before JAX starts)
+import tissuefit as tf
 import jax
 from tissuefit import cli as tf_cli
 from tqdm import tqdm
+
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

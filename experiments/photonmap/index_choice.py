@@ -33,9 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-import tissuefit.photonmap as pm  # noqa: I001
+import tissuefit.photonmap as pm
 import jax
 import jax.numpy as jnp
+import tissuefit
+
+tissuefit.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 spec = importlib.util.spec_from_file_location("photonmap_run", HERE / "run.py")

@@ -46,9 +46,12 @@ import equinox as eqx
 import numpy as np
 from scipy.special import lambertw
 
-import tissuefit.photonmap as pm  # noqa: I001  (tissuefit configures one XLA CPU device per core)
+import tissuefit.photonmap as pm
 import jax
 import jax.numpy as jnp
+import tissuefit
+
+tissuefit.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
 ELL = 0.1  # cm, radial decay length of the exitance profile

@@ -33,6 +33,8 @@ import numpy as np
 
 import tissuefit as tf
 
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
+
 HERE = Path(__file__).resolve().parent
 MUA, MUS, G = 2.0, 20.0, 0.0
 MUT = MUA + MUS

@@ -43,6 +43,8 @@ from tissuefit import io
 from tissuefit import render as rd
 from tissuefit.fit import FitParameter, write_fit_plot, write_fit_report
 
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
+
 HERE = Path(__file__).resolve().parent
 
 TRUTH = {"mua": 1.5, "a": 15.0, "g": 0.85, "c": 2.0}

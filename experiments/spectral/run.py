@@ -24,6 +24,8 @@ import numpy as np
 
 import tissuefit as tf
 
+tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
+
 HERE = Path(__file__).parent
 BANDS = tf.BandGrid.uniform(400, 720, 16)
 INF = float("inf")

@@ -83,6 +83,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._setup import float64
 from ..render import RenderOptions, render
 from ..render._render import variance_available
 from ._parameters import FitParameter, Layout
@@ -126,6 +127,7 @@ def _measured_arrays(measured, variance, mask):
     return data, var, m, wl
 
 
+@float64
 def fit(
     measured,
     tissue,

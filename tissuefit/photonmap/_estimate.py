@@ -36,6 +36,7 @@ from jax.custom_derivatives import SymbolicZero
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float
 
+from .._setup import float64
 from . import _args
 from .._checks import is_concrete
 from ._grid import argsort_keys, cell_coords, linear_id, tile_slices
@@ -315,6 +316,7 @@ def _poison(out, flag):
     return out if flag is None else jnp.where(flag, jnp.asarray(jnp.nan, out.dtype), out)
 
 
+@float64
 def estimate_surface(
     photon_map: SurfaceMap,
     query_xy: Float[Array, "queries 2"],
@@ -363,6 +365,7 @@ def estimate_surface(
     return _poison(out, flag)
 
 
+@float64
 def estimate_volume(
     photon_map: VolumeMap,
     query_xyz: Float[Array, "queries 3"],
@@ -406,6 +409,7 @@ def estimate_volume(
     return _poison(out, flag)
 
 
+@float64
 def knn_radius(
     photon_map: SurfaceMap | VolumeMap,
     query: Float[Array, "queries dim"],

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._setup import float64
 from .._checks import bucket, check_positive_int, check_range, is_concrete
 from ._grid import Grid, argsort_keys, cell_coords, index_dtype, index_limit, linear_id, tile_candidates
 
@@ -183,6 +184,7 @@ def _build(cls, records, *, cell, capacity, tile, precision, capacity_multiplier
     return cls(capacity=capacity, **fields)
 
 
+@float64
 def build_surface_map(
     records,
     *,
@@ -214,6 +216,7 @@ def build_surface_map(
                   capacity_multiplier=capacity_multiplier, round_up=round_up)
 
 
+@float64
 def build_volume_map(
     records,
     *,
@@ -232,6 +235,7 @@ def build_volume_map(
                   capacity_multiplier=capacity_multiplier, round_up=round_up)
 
 
+@float64
 def update_map(photon_map: SurfaceMap | VolumeMap, records) -> SurfaceMap | VolumeMap:
     """Re-sort new `records` into `photon_map`'s grid, keeping its static capacity (jit-able).
 

@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._setup import float64
 from .._checks import bucket, check_positive_int, check_range
 from ..photonmap import build_surface_map, build_volume_map, estimate_surface, estimate_volume, kernel_profile, update_map
 from ..photonmap._kernels import _NORM, KERNELS
@@ -343,6 +344,7 @@ class RenderReplay(eqx.Module):
     hit: Array  # [H, W]
     photons: Array  # [] launches traced (float; an array so that re-traces share compiled code)
 
+    @float64
     def terms(self, tissue: SpectralTissue):
         """(surface, fluorescence) images [bands, H, W] at `tissue` (JAX arrays)."""
         smap, vmap_arr, vmap_em = self.maps
@@ -357,6 +359,7 @@ class RenderReplay(eqx.Module):
         t = self.transmission[:, None, None]
         return _image(self.hit, l_s) * t, _image(self.hit, l_f) * t
 
+    @float64
     def stack(self, tissue: SpectralTissue):
         """The stack [bands, H, W] at `tissue`: surface + fluorescence + specular (compiled once per
         replay structure; differentiable and vmap-able in `tissue`)."""
@@ -367,6 +370,7 @@ class RenderReplay(eqx.Module):
         """Whether `variance` is available (`variance_available`: fixed bandwidth, box or Epanechnikov)."""
         return variance_available(self.shading.options)
 
+    @float64
     def variance(self, tissue: SpectralTissue):
         """The Monte Carlo variance [bands, H, W] of the replayed surface term at `tissue`, sum_i
         (K_i P_i(tissue))^2 over the records (each photon leaves one surface record; the volume
@@ -384,6 +388,7 @@ class RenderReplay(eqx.Module):
         without fluorophores, or fluorescence in "surface" mode), so that `covariance` covers it all."""
         return self.arrivals is None and self.emissions is None
 
+    @float64
     def covariance(self, tissue: SpectralTissue, weights) -> np.ndarray:
         """The Monte Carlo covariance [m, m] of the linear functionals f_m = <weights[m], surface
         term> of the replayed image at `tissue` (`weights` [m, bands, H, W], units of 1/the image).
@@ -406,6 +411,7 @@ class RenderReplay(eqx.Module):
         total = c.sum(0)
         return c.T @ c - np.outer(total, total) / float(self.photons)
 
+    @float64
     def noise_weights(self, pixel_weights):
         """W [n, bands]: sum over pixels of pixel_weights [bands, H, W] x record i's squared kernel
         weight, so that sum_p pixel_weights_p variance_p(tissue) = sum_i,b W_ib P_ib(tissue)^2 (the
@@ -419,6 +425,7 @@ class RenderReplay(eqx.Module):
         (w,) = pullback(jnp.asarray(pixel_weights, jnp.float64))
         return w
 
+    @float64
     def effective_sample_size(self, tissue: SpectralTissue) -> dict:
         """Per map, the records' effective sample size at `tissue` relative to the trace [bands]."""
         out = {"surface": self.surface.effective_sample_size(tissue)}
@@ -561,6 +568,7 @@ def _auto_radius(records_xyz: np.ndarray, queries: np.ndarray, neighbours: int, 
     return float(np.median(dist[:, 0]))
 
 
+@float64
 def render(
     tissue: SpectralTissue,
     endoscope: Endoscope | None = None,

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._setup import float64
 from ..scene import SpectralTissue
 from ..transport import PhotonRecords
 
@@ -88,6 +89,7 @@ class RecordReplay(eqx.Module):
         part = power[np.asarray(conv) > 1].sum(0)
         return np.where(total > 0, part / np.where(total > 0, total, 1.0), 0.0)
 
+    @float64
     def log_ratio(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
         """log P(tissue)/P0 per record and band, without the conversion coefficient's ratio."""
         _check_tissue(tissue, self.traced)
@@ -107,6 +109,7 @@ class RecordReplay(eqx.Module):
         f = lambda a: None if a is None else jnp.asarray(a, jnp.float64)  # noqa: E731
         return segment_log_ratio(f(path), f(hits), f(score), props, props0)
 
+    @float64
     def conversion_ratio(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
         """The conversion's factor of each converted record's power (1 elsewhere), per band.
 
@@ -151,12 +154,14 @@ class RecordReplay(eqx.Module):
         ok = conv & (den > 0)
         return jnp.where(ok, num / jnp.where(ok, den, 1.0) * jnp.exp(shift), 1.0)
 
+    @float64
     def power(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
         """The records' powers [n, bands] at `tissue` (per launched photon, as `PhotonRecords.power`)."""
         p0 = jnp.asarray(self.records.power, jnp.float64)
         lr = jnp.where(p0 != 0, self.log_ratio(tissue), 0.0)
         return p0 * jnp.exp(lr) * self.conversion_ratio(tissue)
 
+    @float64
     def effective_sample_size(self, tissue: SpectralTissue, mask=None) -> Float[Array, " bands"]:
         """Kish's effective sample size of the reweighted records relative to the traced ones, per
         band: ESS(tissue)/ESS(traced) with ESS = (sum P)^2 / sum P^2 over the records (in `mask`).

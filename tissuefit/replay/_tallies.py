@@ -20,6 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._setup import float64
 from .._checks import is_concrete
 from ..scene import Scene, SpectralScene, SpectralTissue
 from ..transport import TALLY_NAMES, RecordSpec, SpectralOptions, TallySpec, TraceOptions, trace, trace_spectral
@@ -70,6 +71,7 @@ def _concrete(tree, where: str):
     return values
 
 
+@float64
 def tallies(scene: Scene, *, key, photons: int, tallies: TallySpec = TallySpec(names=()),
             options: TraceOptions = TraceOptions(), **trace_kwargs) -> dict:
     """Trace `scene` and return its tallies as differentiable functions of `scene.tissue`'s mua, mus, g.
@@ -117,13 +119,16 @@ class EscapeReplay(eqx.Module):
     replay: RecordReplay
     result: object
 
+    @float64
     def rd(self, tissue: SpectralTissue):
         return self.replay.power(tissue).sum(0)
 
+    @float64
     def rd_fluor(self, tissue: SpectralTissue):
         converted = jnp.asarray(self.replay.records.converted)[:, None]
         return jnp.where(converted, self.replay.power(tissue), 0.0).sum(0)
 
+    @float64
     def effective_sample_size(self, tissue: SpectralTissue):
         return self.replay.effective_sample_size(tissue)
 
@@ -132,6 +137,7 @@ class EscapeReplay(eqx.Module):
         return self.replay.untracked
 
 
+@float64
 def trace_records(scene: SpectralScene, *, key, photons: int, options: TraceOptions = TraceOptions(),
                   spectral: SpectralOptions = SpectralOptions(), **trace_kwargs) -> EscapeReplay:
     """Trace `scene` keeping every escaping photon as a replayable record; returns an `EscapeReplay`.

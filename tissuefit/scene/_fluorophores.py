@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._atomic import atomic_writer
-from .._checks import check_range
+from .._checks import check_range, f64
 from ._optics import LN10, AbstractAbsorber, LayerOptics
 from ._spectra import DEFAULT_BANDS, BandGrid, _check_increasing, _parse_csv, _parse_float
 
@@ -29,10 +29,6 @@ PPIX_REFERENCE_CONCENTRATION = 10e-6
 """PpIX concentration [M] that c = 1 stands for (10 µM, about 5.6 µg/g: high ALA-induced tumour levels)."""
 
 Quantity = Literal["photons", "energy"]
-
-
-def _f64(value) -> Array:
-    return jnp.asarray(value, dtype=jnp.float64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -172,8 +168,8 @@ class Fluorophore(AbstractAbsorber):
         if not isinstance(bands, BandGrid):
             raise TypeError(f"fluorophore {name!r}: bands is a {type(bands).__name__}, not a BandGrid")
         n = bands.num_bands
-        sigma = jnp.asarray(specific_absorption, dtype=jnp.float64)
-        eem = jnp.asarray(eem, dtype=jnp.float64)
+        sigma = f64(specific_absorption)
+        eem = f64(eem)
         if sigma.shape != (n,):
             raise ValueError(f"{name}.specific_absorption has shape {sigma.shape}; expected ({n},), one value per band")
         if eem.shape != (n, n):
@@ -181,10 +177,10 @@ class Fluorophore(AbstractAbsorber):
         self.name = str(name)
         self.bands = bands
         self.specific_absorption = sigma
-        self.eem = eem * jnp.asarray(stokes_mask(n))
-        self.d = _f64(d)
-        self.c = _f64(c)
-        self.quantum_yield = _f64(quantum_yield)
+        self.eem = eem * stokes_mask(n)
+        self.d = f64(d)
+        self.c = f64(c)
+        self.quantum_yield = f64(quantum_yield)
 
     def __check_init__(self):
         check_range(f"{self.name}.specific_absorption", self.specific_absorption, unit="1/cm", low=0.0)

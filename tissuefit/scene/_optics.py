@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_range
+from .._checks import check_range, f64
 from ._spectra import BandGrid, _check_increasing, _pick_column, read_spectrum_table
 
 LN10 = math.log(10.0)
@@ -43,10 +43,6 @@ HEMOGLOBIN_G_PER_L = 150.0
 """Hemoglobin concentration of whole blood [g/L] (Prahl's conversion)."""
 HEMOGLOBIN_G_PER_MOL = 64500.0
 """Gram molecular weight of hemoglobin [g/mol] (Prahl's conversion)."""
-
-
-def _f64(value) -> Array:
-    return jnp.asarray(value, dtype=jnp.float64)
 
 
 def _data_path(name: str):
@@ -117,7 +113,7 @@ def _per_band(field: str, value: Array, bands: BandGrid) -> Array:
 class ConstantAbsorption(AbstractAbsorber):
     """A fixed absorption coefficient: `mua` [1/cm], ≥ 0; scalar (all bands) or [bands]. Differentiable."""
 
-    mua: Float[Array, "*bands"] = eqx.field(converter=_f64)
+    mua: Float[Array, "*bands"] = eqx.field(converter=f64)
 
     def __check_init__(self):
         check_range("absorber.mua", self.mua, unit="1/cm", low=0.0)
@@ -146,10 +142,10 @@ class Blood(AbstractAbsorber):
     - `hemoglobin`: hemoglobin concentration of whole blood [g/L], > 0, default 150.
     """
 
-    fraction: Float[Array, ""] = eqx.field(converter=_f64)
-    saturation: Float[Array, ""] = eqx.field(converter=_f64)
-    vessel_radius: Float[Array, ""] = eqx.field(default=0.0, converter=_f64)
-    hemoglobin: Float[Array, ""] = eqx.field(default=HEMOGLOBIN_G_PER_L, converter=_f64)
+    fraction: Float[Array, ""] = eqx.field(converter=f64)
+    saturation: Float[Array, ""] = eqx.field(converter=f64)
+    vessel_radius: Float[Array, ""] = eqx.field(default=0.0, converter=f64)
+    hemoglobin: Float[Array, ""] = eqx.field(default=HEMOGLOBIN_G_PER_L, converter=f64)
 
     def __check_init__(self):
         check_range("blood.fraction", self.fraction, unit="-", low=0.0, high=1.0)
@@ -193,12 +189,12 @@ class TabulatedAbsorber(AbstractAbsorber):
 
     def __init__(self, wavelengths, extinction, concentration):
         x = _check_increasing("absorber.wavelength_nm", wavelengths)
-        eps = jnp.asarray(extinction, dtype=jnp.float64).reshape(-1)
+        eps = f64(extinction).reshape(-1)
         if eps.shape[0] != x.size:
             raise ValueError(f"absorber.extinction has {eps.shape[0]} entries but absorber.wavelength_nm has {x.size}")
         self.wavelengths = tuple(float(a) for a in x)
         self.extinction = eps
-        self.concentration = _f64(concentration)
+        self.concentration = f64(concentration)
 
     def __check_init__(self):
         check_range("absorber.extinction", self.extinction, unit="1/(cm M)", low=0.0)
@@ -239,9 +235,9 @@ class PowerLawScattering(AbstractScatterer):
     `g` Henyey–Greenstein anisotropy [-], in (−1, 1) (tissue ~0.8–0.95).
     """
 
-    a: Float[Array, ""] = eqx.field(converter=_f64)
-    b: Float[Array, ""] = eqx.field(converter=_f64)
-    g: Float[Array, ""] = eqx.field(converter=_f64)
+    a: Float[Array, ""] = eqx.field(converter=f64)
+    b: Float[Array, ""] = eqx.field(converter=f64)
+    g: Float[Array, ""] = eqx.field(converter=f64)
 
     REFERENCE_NM = 500.0
 
@@ -262,8 +258,8 @@ class PowerLawScattering(AbstractScatterer):
 class ConstantScattering(AbstractScatterer):
     """Fixed `mus` [1/cm] ≥ 0 and `g` [-] in (−1, 1); scalars or [bands]. Differentiable."""
 
-    mus: Float[Array, "*bands"] = eqx.field(converter=_f64)
-    g: Float[Array, "*bands"] = eqx.field(converter=_f64)
+    mus: Float[Array, "*bands"] = eqx.field(converter=f64)
+    g: Float[Array, "*bands"] = eqx.field(converter=f64)
 
     def __check_init__(self):
         check_range("scattering.mus", self.mus, unit="1/cm", low=0.0)
@@ -297,7 +293,7 @@ class BandOverride(eqx.Module):
         k = len(self.wavelengths)
         for name, value in (("mua", mua), ("mus", mus), ("g", g)):
             if value is not None:
-                value = jnp.asarray(value, dtype=jnp.float64).reshape(-1)
+                value = f64(value).reshape(-1)
                 if value.shape[0] != k:
                     raise ValueError(f"override.{name} has {value.shape[0]} values for {k} override wavelengths")
             setattr(self, name, value)

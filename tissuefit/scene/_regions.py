@@ -32,7 +32,7 @@ def _vector(field: str, value) -> Array:
     if v.shape != (3,):
         raise ValueError(f"{field} has shape {v.shape}; expected three numbers (x, y, z) [cm]")
     check_range(field, v, unit="cm")
-    return jnp.asarray(v)
+    return v
 
 
 class AbstractRegion(eqx.Module):

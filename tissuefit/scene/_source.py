@@ -14,14 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, UInt
 
-from .._checks import check_range, float_array
+from .._checks import check_range, f64, float_array
 
 
 def _f64(value) -> Array:
     # Anything but numbers is kept as given, for __check_init__ to refuse naming the field.
     if not isinstance(value, jnp.ndarray) and np.asarray(value).dtype.kind not in "iuf":
         return value
-    return jnp.asarray(value, dtype=jnp.float64)
+    return f64(value)
 
 
 def _direction(polar_deg, azimuth_deg):

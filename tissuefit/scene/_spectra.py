@@ -38,16 +38,12 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._atomic import atomic_writer
-from .._checks import check_range, is_concrete
+from .._checks import check_range, f64, is_concrete
 
 Response = Literal["boxcar", "gaussian", "delta"]
 _RESPONSES = ("boxcar", "gaussian", "delta")
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))  # 2.3548...
 _GAUSS_HALF_SUPPORT_SIGMAS = 5.0  # Gaussian responses are truncated at ±5 sigma (weight lost < 6e-7)
-
-
-def _f64(value) -> Array:
-    return jnp.asarray(value, dtype=jnp.float64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,10 +311,10 @@ class LongpassFilter(AbstractSpectrum):
     yours and pass a `TabulatedSpectrum` for quantitative work.
     """
 
-    cut_nm: Float[Array, ""] = eqx.field(converter=_f64)
-    width_nm: Float[Array, ""] = eqx.field(default=5.0, converter=_f64)
-    blocked: Float[Array, ""] = eqx.field(default=0.0, converter=_f64)
-    passed: Float[Array, ""] = eqx.field(default=1.0, converter=_f64)
+    cut_nm: Float[Array, ""] = eqx.field(converter=f64)
+    width_nm: Float[Array, ""] = eqx.field(default=5.0, converter=f64)
+    blocked: Float[Array, ""] = eqx.field(default=0.0, converter=f64)
+    passed: Float[Array, ""] = eqx.field(default=1.0, converter=f64)
 
     def __check_init__(self):
         check_range("filter.cut_nm", self.cut_nm, unit="nm", low=0.0, low_open=True)
@@ -337,8 +333,8 @@ class GaussianSpectrum(AbstractSpectrum):
     described by this shape; see `violet_led`.
     """
 
-    center_nm: Float[Array, ""] = eqx.field(converter=_f64)
-    fwhm_nm: Float[Array, ""] = eqx.field(converter=_f64)
+    center_nm: Float[Array, ""] = eqx.field(converter=f64)
+    fwhm_nm: Float[Array, ""] = eqx.field(converter=f64)
 
     def __check_init__(self):
         check_range("spectrum.center_nm", self.center_nm, unit="nm", low=0.0, low_open=True)
@@ -356,8 +352,8 @@ class BoxcarSpectrum(AbstractSpectrum):
     zero almost everywhere. Use `GaussianSpectrum` when edges are to be fitted.
     """
 
-    low_nm: Float[Array, ""] = eqx.field(converter=_f64)
-    high_nm: Float[Array, ""] = eqx.field(converter=_f64)
+    low_nm: Float[Array, ""] = eqx.field(converter=f64)
+    high_nm: Float[Array, ""] = eqx.field(converter=f64)
 
     def __check_init__(self):
         check_range("spectrum.low_nm", self.low_nm, unit="nm", low=0.0, low_open=True)
@@ -380,7 +376,7 @@ class TabulatedSpectrum(AbstractSpectrum):
 
     def __init__(self, wavelengths, values):
         x = _check_increasing("spectrum.wavelength_nm", wavelengths)
-        v = jnp.asarray(values, dtype=jnp.float64).reshape(-1)
+        v = f64(values).reshape(-1)
         if v.shape[0] != x.size:
             raise ValueError(f"spectrum.values has {v.shape[0]} entries but spectrum.wavelength_nm has {x.size}")
         check_range("spectrum.values", v, unit="-", low=0.0)

@@ -16,7 +16,7 @@ def _as_array(field: str, value, allowed: str) -> Array:
     # Scene data is stored in float64; the tracer casts to its working precision.
     if isinstance(value, jnp.ndarray):
         return value
-    return jnp.asarray(float_array(field, value, allowed=allowed))
+    return float_array(field, value, allowed=allowed)
 
 
 def _as_scalar(field: str, value, allowed: str) -> Array:
@@ -24,7 +24,7 @@ def _as_scalar(field: str, value, allowed: str) -> Array:
         value = float_array(field, value, allowed=allowed, what="a number")
     if value.size != 1:
         raise ValueError(f"{field} has shape {value.shape}; expected a single number in {allowed}")
-    return jnp.asarray(value).reshape(())
+    return value.reshape(()) if isinstance(value, jnp.ndarray) else np.asarray(value, np.float64).reshape(())
 
 
 class LayeredTissue(eqx.Module):

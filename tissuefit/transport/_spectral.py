@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._setup import float64
 from .._checks import check_positive_int, check_range, is_concrete
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
@@ -190,6 +191,7 @@ class SpectralKernel(eqx.Module):
 
 
 
+@float64
 def trace_spectral(
     scene: SpectralScene,
     *,

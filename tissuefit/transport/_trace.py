@@ -26,6 +26,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array
 
+from .._setup import float64
 from .._checks import check_positive_int
 from ..scene import Scene
 from . import _rng
@@ -140,6 +141,7 @@ def _fingerprint(scene, words, photons, chunks, kernel, devices) -> str:
     return digest.hexdigest()
 
 
+@float64
 def trace(
     scene: Scene,
     *,
