@@ -103,6 +103,16 @@ class Endoscope(eqx.Module):
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return jnp.broadcast_to(jnp.asarray(c, dtype), d.shape), jnp.asarray(d, dtype)
 
+    def camera(self, batches: int = 8):
+        """The camera as a `tissuefit.transport.PinholeCamera` (next-event estimation), its photons
+        split into `batches` independent images."""
+        from ..transport import PinholeCamera
+
+        a, ex, c, _ = self.frame()
+        return PinholeCamera(position=c, axis=a, x_axis=ex, y_axis=(0.0, 1.0, 0.0),
+                             half_width=math.tan(math.radians(self.fov_deg) / 2), width=self.width,
+                             height=self.height, batches=batches)
+
     # ---------------------------------------------------------------------------------------------
     # lights
 

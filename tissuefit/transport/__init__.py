@@ -1,9 +1,12 @@
 """How photons move: MCML physics, vectorised lane loop with regeneration, tallies."""
 
+from ._camera import PinholeCamera as PinholeCamera
 from ._config import TALLY_NAMES as TALLY_NAMES, TallySpec as TallySpec, TraceOptions as TraceOptions
 from ._reference import trace_reference as trace_reference
 from ._result import TraceResult as TraceResult
 from ._trace import TraceState as TraceState, trace as trace
+from ._image import ImageResult as ImageResult, trace_image as trace_image
+from ._nee import EmissionSites as EmissionSites, ImageSpec as ImageSpec
 from ._records import PhotonRecords as PhotonRecords, RecordSpec as RecordSpec
 from ._spectral import (
     SpectralOptions as SpectralOptions,

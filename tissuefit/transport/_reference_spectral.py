@@ -280,12 +280,13 @@ class _Photon:
     layer, region (-1: the layer itself), unfinished optical depth `sleft` [-] (0: draw a new
     one), whether it is alive and whether it has converted (fluorescence)."""
 
-    __slots__ = ("x", "y", "z", "ux", "uy", "uz", "w", "band", "layer", "region", "sleft", "alive", "converted")
+    __slots__ = ("x", "y", "z", "ux", "uy", "uz", "w", "band", "layer", "region", "sleft", "alive", "converted", "index")
 
     def __init__(self, x, y, z, ux, uy, uz, w, band, layer, region):
         self.x, self.y, self.z, self.ux, self.uy, self.uz = x, y, z, ux, uy, uz
         self.w, self.band, self.layer, self.region = w, band, layer, region
         self.sleft, self.alive, self.converted = 0.0, w > 0.0, False
+        self.index = 0
 
 
 def specular(scene: _Scene, cos_i: float) -> tuple[float, float, float, int]:
@@ -388,9 +389,14 @@ def emit_isotropic(photon: _Photon, rand: _Uniforms) -> None:
     photon.ux, photon.uy, photon.uz = sin_theta * math.cos(psi), sin_theta * math.sin(psi), uz
 
 
-def drop(photon: _Photon, medium: _Medium, boost: float, rand: _Uniforms, tallies: _Tallies) -> None:
+def drop(photon: _Photon, medium: _Medium, boost: float, rand: _Uniforms, tallies: _Tallies, hook=None) -> None:
     """An interaction: deposit heat w (mua/mut - p), then convert (fluorescence) or scatter the
-    remaining R = w (a + p), with conversion probability q = boost q_a / (1 + (boost - 1) q_a), q_a = p/(a + p)."""
+    remaining R = w (a + p), with conversion probability q = boost q_a / (1 + (boost - 1) q_a), q_a = p/(a + p).
+
+    `hook(event, photon, medium)`, if given, sees the photon arriving ("interaction", before
+    anything changes) and, after a conversion, the converted photon at the same point ("emission")."""
+    if hook is not None:
+        hook("interaction", photon, medium)
     i, w = photon.band, photon.w
     mut, p = medium.mut[i], medium.p[i]
     albedo = medium.mus[i] / mut
@@ -406,6 +412,8 @@ def drop(photon: _Photon, medium: _Medium, boost: float, rand: _Uniforms, tallie
         photon.w, photon.band, photon.converted = remaining * q_a / q, j, True
         tallies.add("emitted", j, photon.w)
         tallies.add("converted_from", i, photon.w)
+        if hook is not None:
+            hook("emission", photon, medium)
         emit_isotropic(photon, rand)
     else:
         photon.w = remaining * (1.0 - q_a) / (1.0 - q)
@@ -427,7 +435,7 @@ def roulette(photon: _Photon, chance: float, rand: _Uniforms, tallies: _Tallies)
         tallies.roulette_fluor += photon.w - before
 
 
-def hop_drop_spin(photon: _Photon, scene: _Scene, boost: float, rand: _Uniforms, tallies: _Tallies) -> None:
+def hop_drop_spin(photon: _Photon, scene: _Scene, boost: float, rand: _Uniforms, tallies: _Tallies, hook=None) -> None:
     """One step: move to the nearest of the interaction (tau / mut), the layer face and a region
     boundary; at a face or boundary keep the unfinished optical depth in `sleft`."""
     medium = scene.layers[photon.layer] if photon.region < 0 else scene.regions[photon.region].medium
@@ -443,7 +451,7 @@ def hop_drop_spin(photon: _Photon, scene: _Scene, boost: float, rand: _Uniforms,
             return
         hop(photon, s)
         photon.sleft = 0.0
-        drop(photon, medium, boost, rand, tallies)
+        drop(photon, medium, boost, rand, tallies, hook)
     elif d_region < d_face:
         hop(photon, d_region)
         photon.sleft = max(photon.sleft - d_region * mut, 0.0)
@@ -462,6 +470,7 @@ def hop_drop_spin(photon: _Photon, scene: _Scene, boost: float, rand: _Uniforms,
 def trace_spectral_reference(
     *, n, thickness, n_above, n_below, mua, mus, g, conversion, band_power, photons, seed,
     polar_deg=0.0, roulette_threshold=1e-4, roulette_chance=0.1, conversion_boost=1.0, regions=(),
+    on_interaction=None,
 ) -> dict:
     """Trace `photons` photons one at a time through layered tissue in B bands with fluorescence.
 
@@ -482,6 +491,8 @@ def trace_spectral_reference(
       "lower": (x, y, z), "upper": (x, y, z)} [cm, box bounds may be inf] with "layer": int and
       optics "mua", "mus" [B] [1/cm], "g" [B], "conversion" [B, B]. The shape intersected with its
       layer takes these optics; shapes in one layer must not overlap or touch (even outside it).
+    - `on_interaction`: optional `hook(event, photon, medium)` called at every interaction (`drop`),
+      e.g. to score a camera image; `photon.index` is the photon's number.
 
     A top layer with mua = mus = 0 in every band is glass (MCML's combined Rsp; no regions in it).
     Refused: a top layer that is glass in only some bands, a semi-infinite layer with mut = 0 in
@@ -543,12 +554,13 @@ def trace_spectral_reference(
     last_band = max(b for b in range(bands) if band_power[b] > 0.0)
     polar = math.radians(polar_deg)
     boost, threshold, chance = float(conversion_boost), float(roulette_threshold), float(roulette_chance)
-    for _ in range(int(photons)):
+    for index in range(int(photons)):
         xi = rand.next()
         band = next((b for b in range(bands) if xi < cumulative[b] and band_power[b] > 0.0), last_band)
         photon = launch(scene, polar, band, tallies)
+        photon.index = index
         while photon.alive:
-            hop_drop_spin(photon, scene, boost, rand, tallies)
+            hop_drop_spin(photon, scene, boost, rand, tallies, on_interaction)
             if photon.alive and photon.w < threshold:
                 roulette(photon, chance, rand, tallies)
         tallies.end_photon()

@@ -20,6 +20,7 @@ from .._setup import float64
 from .._checks import check_positive_int, check_range, is_concrete
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
+from ._nee import EmissionSites, ImageSpec, refill_sites
 from ._records import REPLAY_FIELDS, PhotonRecords, RecordSpec
 from ._spectral_lanes import harvest, refill, step
 from ._spectral_state import SpectralConfig, idle_lanes, medium_arrays, zeros_acc
@@ -78,6 +79,11 @@ class SpectralResult(eqx.Module):
     `a_fluor` are what the balance leaves (unbiased) and `roulette` is not resolved (zeros).
     Totals over bands: `rd_total`, `tt_total` (with per-photon standard errors), `a_total`, `rsp_total`.
     `surface_records`, `volume_records`: `PhotonRecords` or None when not requested.
+    With `image=ImageSpec(...)`: `image` [batches, bands, H, W], the camera's next-event radiance
+    per launched photon [1/(cm^2 sr)] of each batch of photons (their mean is the image; their spread
+    its Monte Carlo noise), and in fluorescent scenes `sites`, the emission sites sampled
+    (`EmissionSites`, powers per launched photon of this trace times its photon count: raw weights),
+    `sites_overflow` the sites that did not fit (their light is missing: retrace with more room).
     `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `budget_exhausted`.
     """
 
@@ -112,6 +118,9 @@ class SpectralResult(eqx.Module):
     budget_exhausted: bool
     surface_records: PhotonRecords | None = None
     volume_records: PhotonRecords | None = None
+    image: np.ndarray | None = None
+    sites: EmissionSites | None = None
+    sites_overflow: int = 0
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -141,7 +150,8 @@ def _shared_ok(props) -> str | None:
     return None
 
 
-def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: SpectralOptions, records: RecordSpec) -> SpectralConfig:
+def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: SpectralOptions, records: RecordSpec,
+                   image: ImageSpec | None = None) -> SpectralConfig:
     """The static configuration of a spectral trace, decided in Python from the scene."""
     active = scene.active_bands()
     props = _active_properties(scene, active)
@@ -161,10 +171,20 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
         why = _shared_ok(props)
         if why is not None:
             raise ValueError(f"spectral.mode = 'shared': {why}; shared paths cannot serve that. Use mode 'per_band'.")
+    if image is not None:
+        if voxels:
+            raise ValueError("image: next-event estimation does not support voxel grids (their media vary along the "
+                             "connection to the camera); render them with estimator='march'")
+        if records.any and scene.tissue.fluorescent:
+            raise ValueError("image: a fluorescent trace scoring a camera image keeps no photon records (its "
+                             "conversions are emission sites, not converted photons)")
+        if isinstance(scene.source, EmissionSites) and scene.source.power.shape[1] != len(active):
+            raise ValueError(f"image: the emission sites carry {scene.source.power.shape[1]} bands, the scene's "
+                             f"active bands are {len(active)}")
     return SpectralConfig(
         mode=mode, num_bands=scene.tissue.bands.num_bands, active=active, fluorescent=scene.tissue.fluorescent,
         num_layers=scene.tissue.num_layers, num_media=scene.tissue.num_media, boost=float(spectral.conversion_boost),
-        records=records, options=options,
+        records=records, options=options, image=image,
     )
 
 
@@ -181,6 +201,8 @@ class SpectralKernel(eqx.Module):
         return medium_arrays(scene, self.config, jnp.dtype(self.options.precision))
 
     def refill(self, lanes, acc, medium, scene, words, end):
+        if isinstance(scene.source, EmissionSites):
+            return refill_sites(lanes, acc, medium, scene.source, words, end, self.config)
         return refill(lanes, acc, medium, scene, words, end, self.config)
 
     def step(self, lanes, acc, medium, scene):
@@ -205,6 +227,7 @@ def trace_spectral(
     devices=None,
     resume: TraceState | None = None,
     on_chunk=None,
+    image: ImageSpec | None = None,
 ) -> SpectralResult:
     """Trace `photons` photons of the scene's source spectrum through a `SpectralScene`.
 
@@ -212,6 +235,8 @@ def trace_spectral(
     budget; `chunks`, `progress`, `devices`, `resume`, `on_chunk`), plus:
     - `spectral`: `SpectralOptions` (per-band or shared paths, conversion boost);
     - `records`: `RecordSpec`, capacities of the surface and volume photon records (default none).
+    - `image`: `ImageSpec`, a camera to score next-event estimates into (default none; `_nee.py`).
+      The scene's source may then be `EmissionSites` (fluorescence light from a previous trace).
     Returns a `SpectralResult`: per-band tallies normalised per launched photon, with records.
     """
     photons = check_positive_int("photons", photons, high=MAX_PHOTONS)
@@ -223,7 +248,11 @@ def trace_spectral(
             raise TypeError(f"{name} must be a tissuefit.{kind.__name__}, got {type(value).__name__}")
     if options.path_stats:
         raise ValueError("options.path_stats: path statistics of spectral traces are not available yet; use trace() per band")
-    config = resolve_config(scene, options, spectral, records)
+    if image is not None and not isinstance(image, ImageSpec):
+        raise TypeError(f"image must be a tissuefit ImageSpec, got {type(image).__name__}")
+    if isinstance(scene.source, EmissionSites) and image is None:
+        raise ValueError("scene.source: emission sites are traced with an image (ImageSpec) only")
+    config = resolve_config(scene, options, spectral, records, image)
     dtype = jnp.dtype(options.precision)
     ndev = len(tuple(jax.devices() if devices is None else devices)[:photons])
     acc, exhausted = run_lanes(
@@ -305,4 +334,29 @@ def _normalise(acc, photons: int, scene: SpectralScene, config: SpectralConfig, 
         steps=total(acc.steps), budget_exhausted=bool(exhausted),
         surface_records=_records(acc.surface, scene, config, photons),
         volume_records=_records(acc.volume, scene, config, photons),
+        **_image_parts(acc, config, photons, scene),
     )
+
+
+def _image_parts(acc, config: SpectralConfig, photons: int, scene: SpectralScene) -> dict:
+    """The image [batches, bands, H, W] per launched photon and the emission sites, from every device."""
+    if config.image is None:
+        return {}
+    cam = config.image.camera
+    sums = np.asarray(acc.image).sum(0)[:-1].reshape(cam.batches, cam.height, cam.width, config.slots)
+    image = np.zeros((cam.batches, config.num_bands, cam.height, cam.width))
+    # batches are photon index mod B: each batch is 1/B of the photons, so its own mean is B sum / N
+    image[:, np.asarray(config.active)] = np.moveaxis(sums, -1, 1) * cam.batches / photons
+    out = {"image": image}
+    if acc.sites is not None:
+        sites = acc.sites
+        rows = [np.arange(int(c)) for c in sites.count]
+
+        def take(a):
+            return np.concatenate([np.asarray(a)[d][r] for d, r in enumerate(rows)])
+
+        out["sites"] = EmissionSites(position=take(sites.position).astype(np.float64), layer=take(sites.layer),
+                                     medium=take(sites.medium), power=take(sites.power).astype(np.float64),
+                                     origin=take(sites.origin))
+        out["sites_overflow"] = int(np.sum(sites.overflow))
+    return out

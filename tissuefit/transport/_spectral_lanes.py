@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from . import _nee
 from . import _physics as phys
 from . import _rng
 from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
@@ -134,6 +135,7 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
+        origin=None if lanes.origin is None else pid,
     )
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
     lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))
@@ -227,7 +229,12 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         hits = lanes.hits
     if shared:
         spectrum = lanes.spectrum
-    if config.fluorescent:
+    if config.sites:
+        # fluorescence by emission sites (`_nee.py`): no conversion here, the photon scatters on
+        convert = jnp.zeros_like(interact)
+        keep = w * albedo
+        p_c = medium.psum[flat] if not shared else None
+    elif config.fluorescent:
         if shared:
             q = medium.q[med, lanes.converted.astype(jnp.int32)]
         else:
@@ -244,7 +251,11 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     path_in = path  # the path statistics arriving at this interaction (a conversion resets them)
     new_band = lanes.band
     w_new = jnp.where(interact, keep, w)
-    if config.fluorescent and shared:
+    if config.image is not None:
+        here_z = _pick(medium.z0, layer) + z
+        acc = _nee.score(acc, lanes._replace(uz=uz), medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z,
+                         med=med, path_in=path_in, xi=xi_d if config.fluorescent else xi_c)
+    if config.fluorescent and shared and not config.sites:
         state = (convert, spectrum, new_band, w_new, path, hits, acc.flux, lanes.exc0)
         state = jax.lax.while_loop(
             lambda st: jnp.any(st[0]),
@@ -253,7 +264,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         )
         _, spectrum, new_band, w_new, path, hits, acc_upd["flux"], exc0 = state
     heat = jnp.where(interact, w - w * albedo - (w * p_c if config.fluorescent and not shared else 0.0), 0.0)
-    if config.fluorescent and not shared:
+    if config.fluorescent and not shared and not config.sites:
         # a conversion closes the photon's segment in its old band (booked here) and starts one in
         # the emission band, with weight w p / q
         w_conv = w * p_c / jnp.where(q > 0, q, 1.0)

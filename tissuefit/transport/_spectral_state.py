@@ -26,10 +26,17 @@ class SpectralConfig(eqx.Module):
     boost: float = eqx.field(static=True)
     records: RecordSpec = eqx.field(static=True)
     options: TraceOptions = eqx.field(static=True)
+    image: object = eqx.field(static=True, default=None)  # ImageSpec (next-event estimation) or None
 
     @property
     def shared(self) -> bool:
         return self.mode == "shared"
+
+    @property
+    def sites(self) -> bool:
+        """Fluorescence by emission sites (`_nee.py`): no conversion is sampled in the trace; the
+        expected emission of every interaction is scored and sampled into a site buffer instead."""
+        return self.image is not None and self.fluorescent
 
     @property
     def slots(self) -> int:
@@ -82,6 +89,7 @@ class _Lanes(NamedTuple):
     heat: Array  # per_band: heat in the current band since the last conversion
     roulette: Array  # per_band: roulette's net weight in the current band since the last conversion
     steps: Array
+    origin: Array | None = None  # image: the photon whose launch this light descends from (its batch)
 
 
 class _Buffer(NamedTuple):
@@ -117,6 +125,20 @@ class _Acc(NamedTuple):
     steps: Array
     surface: _Buffer | None
     volume: _Buffer | None
+    image: Array | None = None  # [batches * pixels + 1, slots] float64: next-event radiance sums (last row: dropped)
+    sites: "_Sites | None" = None
+
+
+class _Sites(NamedTuple):
+    """Emission sites (`_nee.py`): points where light converted, with the power emitted per band."""
+
+    position: Array  # [cap, 3] (x, y, absolute depth) cm
+    layer: Array  # [cap] int32
+    medium: Array  # [cap] int32
+    power: Array  # [cap, slots]: emitted weight per band (expected emission / site probability)
+    origin: Array  # [cap] int64: the launch this light descends from
+    count: Array
+    overflow: Array
 
 
 class _Medium(NamedTuple):
@@ -133,6 +155,7 @@ class _Medium(NamedTuple):
     log_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mus_k / mus_c)
     log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
     dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
+    solid_angle: Array | None = None  # image: [pixels] the camera pixels' solid angles [sr]
 
 
 def boosted(q_a, boost: float):
@@ -183,6 +206,7 @@ def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
         power=scene.band_power().astype(dtype), conv=conv,
         psum=None if psum is None else psum.reshape(-1).astype(dtype), q=q, log_ratio=log_ratio,
         log_mut_ratio=log_mut_ratio, dmut=dmut,
+        solid_angle=None if config.image is None else jnp.asarray(config.image.camera.solid_angles(), dtype),
     )
 
 
@@ -219,10 +243,20 @@ def zeros_acc(config: SpectralConfig, capacity_share: int, dtype) -> _Acc:
     def buf(capacity):
         return _empty_buffer(-(-capacity // capacity_share), config, dtype) if capacity else None
 
+    image = sites = None
+    if config.image is not None:
+        cam = config.image.camera
+        image = jnp.zeros((cam.batches * cam.pixels + 1, config.slots), f64)
+        if config.sites:
+            cap = -(-config.image.sites // capacity_share)
+            sites = _Sites(position=jnp.zeros((cap, 3), dtype), layer=jnp.zeros(cap, jnp.int32),
+                           medium=jnp.zeros(cap, jnp.int32), power=jnp.zeros((cap, config.slots), dtype),
+                           origin=jnp.zeros(cap, jnp.int64), count=jnp.zeros((), jnp.int64),
+                           overflow=jnp.zeros((), jnp.int64))
     return _Acc(
         next_pid=jnp.zeros((), jnp.int64), rsp=jnp.zeros((), f64), totals=jnp.zeros((2, 2), f64),
         escape=jnp.zeros((nb, 4, 2), f64), deposit=jnp.zeros((nb, 4), f64), flux=jnp.zeros((nb, 4), f64),
-        steps=jnp.zeros((), jnp.int64), surface=buf(rec.surface), volume=buf(rec.volume),
+        steps=jnp.zeros((), jnp.int64), surface=buf(rec.surface), volume=buf(rec.volume), image=image, sites=sites,
     )
 
 
@@ -238,5 +272,5 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
         path=per_medium(), hits=per_medium(), **_replay_fields(lanes, config, dtype), sleft=zf,
         layer=zi, medium=zi, band=zi, converted=jnp.zeros(lanes, bool),
         status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
-        heat=zf, roulette=zf, steps=zi,
+        heat=zf, roulette=zf, steps=zi, origin=None if config.image is None else jnp.zeros(lanes, jnp.int64),
     )

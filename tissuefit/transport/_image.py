@@ -1,0 +1,164 @@
+"""`trace_image`: a camera image by next-event estimation, fluorescence by emission sites.
+
+Photons are launched from the scene's source in chunks. Each chunk is traced once with the camera
+(`_nee.py`): every interaction scores the light it scatters and the fluorescence it emits straight
+to the camera, and fluorescent scenes sample emission sites. The sites are then traced as photons
+of their own (each `splits` times, the power divided), scoring the fluorescence that scatters
+before it escapes, and sampling sites of their own where fluorescence light is converted again
+(next generation), up to `generations`. Chunks bound the memory the sites take.
+
+The image is the sum of all of it per launched photon; the photons (and all light descending
+from each) are split into `camera.batches` independent batch images, whose spread is its Monte
+Carlo noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .._checks import bucket, check_positive_int, check_range
+from .._setup import float64
+from ..scene import SpectralScene
+from ._camera import PinholeCamera
+from ._config import TraceOptions
+from ._nee import EmissionSites, ImageSpec
+from ._spectral import SpectralOptions, SpectralResult, trace_spectral
+
+CHUNK_PHOTONS = 1 << 20
+"""Launches per chunk of `trace_image` (its emission sites are traced before the next chunk)."""
+
+SITES_PER_PHOTON = 1.0
+"""First guess of the emission sites a launch leaves, for the site buffer (grown when it overflows)."""
+
+
+class ImageResult(eqx.Module):
+    """A next-event image and how it was made (numpy).
+
+    - `batches` [batches, bands, H, W]: radiance per unit launched power [1/(cm^2 sr)] of each
+      independent batch of photons; `image` [bands, H, W] their mean; `variance` [bands, H, W] the
+      Monte Carlo variance of `image` (the batches' spread / batches).
+    - `photons`: launches traced; `sites` [generations]: emission sites traced in each generation;
+      `emitted` [generations]: their power per launched photon (summed over bands);
+      `untraced`: the power of sites of the generation after the last, left out (per launched photon).
+    - `trace`: the `SpectralResult` of the launches (tallies of the first chunk, records dropped).
+    - `timings`: seconds per stage ("launches", "sites").
+    """
+
+    batches: np.ndarray
+    photons: int
+    sites: tuple
+    emitted: tuple
+    untraced: float
+    trace: SpectralResult
+    timings: dict
+
+    @property
+    def image(self) -> np.ndarray:
+        return self.batches.mean(axis=0)
+
+    @property
+    def variance(self) -> np.ndarray:
+        b = self.batches.shape[0]
+        return self.batches.var(axis=0, ddof=1) / b if b > 1 else np.full(self.batches.shape[1:], np.nan)
+
+
+def _with_sites(scene: SpectralScene, sites: EmissionSites) -> SpectralScene:
+    return SpectralScene(scene.tissue, source=sites, spectrum=scene.spectrum)
+
+
+def _traced_with_room(scene, key, photons, options, spectral, camera, site_rate, capacity, chunks, progress):
+    """trace_spectral with a site buffer grown (and the trace repeated) until nothing overflows."""
+    for _ in range(6):
+        spec = ImageSpec(camera=camera, sites=capacity if scene.tissue.fluorescent else 0, site_rate=site_rate)
+        out = trace_spectral(scene, key=key, photons=photons, options=options, spectral=spectral, image=spec,
+                             chunks=chunks, progress=progress)
+        if not out.sites_overflow:
+            return out, capacity
+        capacity = bucket((out.sites.count + out.sites_overflow) * 1.25)
+    raise RuntimeError("trace_image: the emission-site buffer kept overflowing")  # pragma: no cover
+
+
+@float64
+def trace_image(
+    scene: SpectralScene,
+    camera: PinholeCamera,
+    *,
+    key,
+    photons: int,
+    options: TraceOptions = TraceOptions(),
+    spectral: SpectralOptions = SpectralOptions(),
+    splits: int = 1,
+    site_rate: float = 0.1,
+    generations: int = 3,
+    chunk_photons: int = CHUNK_PHOTONS,
+    progress=None,
+) -> ImageResult:
+    """Trace `photons` launches of `scene` and score what `camera` sees (module docstring).
+
+    - `scene`: a `SpectralScene` whose source launches from above the tissue (a `LaunchList` for
+      an endoscope's lights); `camera`: a `PinholeCamera`.
+    - `key` (keyword-only), `photons`, `options`, `spectral`: as for `trace_spectral`
+      (`spectral.conversion_boost` plays no part: no conversion is sampled).
+    - `splits`: photons traced per emission site (splitting at conversion; their power divided).
+    - `site_rate`: emission sites per interaction of a launch-weight photon where a band's strongest
+      emitter is (`_nee.py`): more sites, each with less power.
+    - `generations`: fluorescence generations traced (light converted again by another
+      fluorophore is the second); what the last leaves is reported in `ImageResult.untraced`.
+    - `chunk_photons`: launches per chunk (bounds the emission sites held at once).
+    - `progress`: optional callable `progress(launches_done)`.
+    Returns an `ImageResult`.
+    """
+    if not isinstance(scene, SpectralScene):
+        raise TypeError(f"scene must be a tissuefit.SpectralScene, got {type(scene).__name__}")
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    photons = check_positive_int("photons", photons, high=2**40)
+    splits = check_positive_int("splits", splits, high=1024)
+    generations = check_positive_int("generations", generations, high=16)
+    chunk_photons = check_positive_int("chunk_photons", chunk_photons, high=2**31)
+    check_range("site_rate", site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
+    timings = {"launches": 0.0, "sites": 0.0}
+    sums = None  # batch sums (per batch: sum over its photons of their radiance)
+    emitted = np.zeros(generations)
+    counts = np.zeros(generations, np.int64)
+    untraced = 0.0
+    first = None
+    capacity = bucket(min(photons, chunk_photons) * SITES_PER_PHOTON)
+    starts = list(range(0, photons, chunk_photons))
+    for c, start in enumerate(starts):
+        n = min(chunk_photons, photons - start)
+        ck = jax.random.fold_in(key, c)
+        t0 = time.perf_counter()
+        done = (lambda k, s=start: progress(s + k)) if progress is not None else None
+        out, capacity = _traced_with_room(scene, ck, n, options, spectral, camera, site_rate, capacity, 1, done)
+        timings["launches"] += time.perf_counter() - t0
+        first = first or out
+        part = out.image * n / camera.batches
+        sums = part if sums is None else sums + part
+        sites = out.sites
+        t1 = time.perf_counter()
+        for gen in range(generations):
+            if sites is None or sites.count == 0:
+                break
+            counts[gen] += sites.count
+            emitted[gen] += float(np.sum(sites.power))
+            launched = sites.padded(bucket(sites.count), splits)
+            m = sites.count * splits
+            last = gen == generations - 1
+            gk = jax.random.fold_in(ck, 1000 + gen)
+            sub, _ = _traced_with_room(_with_sites(scene, launched), gk, m, options, spectral, camera, site_rate,
+                                       bucket(m * SITES_PER_PHOTON), 1, None)
+            sums = sums + sub.image * m / camera.batches
+            sites = sub.sites
+            if last and sites is not None:
+                untraced += float(np.sum(sites.power))
+        timings["sites"] += time.perf_counter() - t1
+    batches = sums * camera.batches / photons
+    return ImageResult(batches=batches, photons=photons, sites=tuple(int(c) for c in counts),
+                       emitted=tuple(float(e) / photons for e in emitted), untraced=untraced / photons,
+                       trace=dataclasses.replace(first, sites=None, image=None), timings=timings)

@@ -1,0 +1,262 @@
+"""Next-event estimation to a camera inside the spectral lanes, and fluorescence by emission sites.
+
+At every interaction (a photon arriving with band weights w_k at a point in medium m, from
+direction w_in), the light it sends straight to the camera (`_camera.connect`) is scored into the
+pixel the refracted ray lands in, for every band k at once:
+
+    L_k += [ w_k (mus_k / mut_k) p_g(w_in . w_out)  +  sum_i w_i P[m, i, k] / (4 pi) ] e^(-tau_k) T G / Omega
+
+The first term is the light scattered towards the camera (the collision estimator: w_k arrives,
+a fraction mus/mut scatters, by the Henyey–Greenstein phase function per steradian). The second is
+the expected fluorescence emitted there, isotropically: P[m, i, k] is the weight moved from band i
+to band k per unit weight at an interaction (`SpectralTissue.conversion`), so summing it over every
+interaction is what the sampled conversions would emit on average, without the sampling.
+
+Fluorescence that scatters before it escapes needs traced fluorescence photons. With a camera the
+tracer samples no conversion (the photon always scatters on with w mus/mut, its weight unaffected
+by fluorescence). Instead each interaction is an emission site with probability
+
+    q = min(1, rate * max_k E_k / u_k),     E_k = sum_i w_i P[m, i, k],
+
+recorded with the power E / q it emits per band. u_k is the most any medium emits into band k per
+unit weight of the source's spectrum (max over media and excitation bands of s_i P[m, i, k] / max s):
+the strongest emitter of every band is sampled at `site_rate` sites per interaction of a photon of
+launch weight, whatever the fluorophore's strength, and weaker or fainter light proportionally
+less (importance by emitted power, band by band). The sites are then
+traced as photons of their own (`EmissionSites`, `_image.trace_image`), `splits` isotropic
+directions per site with the power divided: splitting at conversion. Every quantity is an unbiased
+estimate of the analog one; the photon that excites keeps lighting the image after it excites,
+which a sampled conversion would end.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .._checks import check_positive_int, check_range
+from ..scene import AbstractSource
+from . import _rng
+from ._camera import PinholeCamera, connect, hg_intensity
+from ._lanes import ALIVE, IDLE, KILLED, _expand
+from ._spectral_state import SpectralConfig, _Sites
+from ._spectral_weights import _sample_index, band_weights
+
+
+class ImageSpec(eqx.Module):
+    """What a spectral trace scores into a camera image (static: changing it recompiles).
+
+    - `camera`: the `PinholeCamera` (its `batches` split the photons into independent images).
+    - `sites`: capacity of the emission-site buffer (fluorescent scenes; 0 for none).
+    - `site_rate`: emission sites per interaction of a launch-weight photon in the strongest
+      emitter of a band (module docstring), in (0, 1].
+    """
+
+    camera: PinholeCamera = eqx.field(static=True)
+    sites: int = eqx.field(static=True, default=0)
+    site_rate: float = eqx.field(static=True, default=0.1)
+
+    def __check_init__(self):
+        if not isinstance(self.camera, PinholeCamera):
+            raise TypeError(f"image.camera is a {type(self.camera).__name__}, not a PinholeCamera")
+        if not isinstance(self.sites, (int, np.integer)) or isinstance(self.sites, bool) or self.sites < 0:
+            raise ValueError(f"image.sites = {self.sites!r}; allowed an integer >= 0 (buffer capacity)")
+        check_range("image.site_rate", self.site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
+
+
+class EmissionSites(AbstractSource):
+    """Fluorescence emission sites as a source inside the tissue: each site emits `splits` photons
+    isotropically, each with 1/splits of its power (`power` per active band, the traced slots).
+
+    Fields (arrays, not differentiable: positions and powers of one trace): `position` [n, 3] (x, y,
+    absolute depth) cm, `layer`, `medium` [n] int, `power` [n, slots], `origin` [n] int (the launch
+    each descends from: its image batch); `splits` static. Photon i starts at site i // splits."""
+
+    position: Float[Array, "n 3"]
+    layer: Int[Array, " n"]
+    medium: Int[Array, " n"]
+    power: Float[Array, "n slots"]
+    origin: Int[Array, " n"]
+    splits: int = eqx.field(static=True, default=1)
+
+    def __check_init__(self):
+        check_positive_int("sites.splits", self.splits, high=1024)
+
+    @property
+    def count(self) -> int:
+        return int(self.position.shape[0])
+
+    def padded(self, rows: int, splits: int) -> "EmissionSites":
+        """The same sites in arrays of `rows` >= count rows (zero power beyond: never launched), traced
+        `splits` times each: arrays of a few sizes share the tracer's compilation."""
+        extra = rows - self.count
+
+        def pad(a):
+            a = np.asarray(a)
+            return np.concatenate([a, np.zeros((extra, *a.shape[1:]), a.dtype)])
+
+        return EmissionSites(position=pad(self.position), layer=pad(self.layer), medium=pad(self.medium),
+                             power=pad(self.power), origin=pad(self.origin), splits=splits)
+
+    def launch(self, index, u):  # pragma: no cover - sites are launched by `refill_sites`
+        raise TypeError("EmissionSites launch inside the tissue (refill_sites), not from the surface")
+
+
+def slot_index(config: SpectralConfig, band: Array) -> Array:
+    """Per band mode: the image slot (position in `active`) of band indices."""
+    table = np.full(config.num_bands, 0, np.int32)
+    table[np.asarray(config.active)] = np.arange(config.slots)
+    return jnp.asarray(table)[band]
+
+
+def _coefficients(medium, config: SpectralConfig, med):
+    """(mua, mus, g) [lanes, slots] of the active bands in each lane's medium."""
+    nb, act = config.num_bands, jnp.asarray(config.active)
+
+    def table(a):
+        return a.reshape(-1, nb)[:, act][med]
+
+    return table(medium.mua), table(medium.mus), table(medium.g)
+
+
+def _emission(w, medium, config: SpectralConfig, med) -> Array:
+    """E [lanes, slots]: the expected fluorescence weight emitted into each band, sum_i w_i P[m, i, k]."""
+    nb, act = config.num_bands, jnp.asarray(config.active)
+    conv = medium.conv.reshape(config.num_media, nb, nb)[:, act][:, :, act]
+    out = w @ conv[0]
+    for m in range(1, config.num_media):
+        out = jnp.where((med == m)[:, None], w @ conv[m], out)
+    return out
+
+
+def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y, z_abs, med, path_in, xi):
+    """Score the camera's next-event estimate of this step's interactions into `acc.image`, and
+    sample emission sites into `acc.sites` (fluorescent scenes). `lanes` is the photon arriving
+    (weight, spectrum, direction, hits before this interaction); `path_in` its path lengths with
+    this hop; `xi` a uniform per lane for the site decision. Returns the accumulators."""
+    spec = config.image
+    cam = spec.camera
+    dtype = x.dtype
+    conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
+    if config.shared:
+        w = band_weights(lanes.w, lanes.spectrum, path_in, lanes.hits, lanes.band, medium)
+    else:
+        w = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=dtype) * lanes.w[:, None]
+    w = jnp.where(interact[:, None], w, 0.0)
+    mua, mus, g = _coefficients(medium, config, med)
+    mut = mua + mus
+    cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
+    albedo = jnp.where(mut > 0, mus / jnp.where(mut > 0, mut, 1.0), 0.0)
+    intensity = w * albedo * hg_intensity(g, cos[:, None])
+    emitted = None
+    if config.fluorescent:
+        emitted = _emission(w, medium, config, med)
+        intensity = intensity + emitted * (1.0 / (4.0 * math.pi))
+    nb, act = config.num_bands, jnp.asarray(config.active)
+    mut_media = (medium.mua + medium.mus).reshape(-1, nb)[:, act]  # [media, slots]
+    tau = conn.lengths @ mut_media
+    value = intensity * jnp.exp(-tau) * conn.factor[:, None]
+    batch = (lanes.origin % cam.batches).astype(jnp.int32)
+    rows = cam.batches * cam.pixels
+    row = jnp.where(interact & conn.valid, batch * cam.pixels + conn.pixel, rows)
+    upd = {"image": acc.image.at[row].add(value.astype(jnp.float64), mode="drop")}
+    if config.sites:
+        upd.update(_record_sites(acc, lanes, medium, config, w, emitted, interact, x, y, z_abs, med, xi))
+    return acc._replace(**upd)
+
+
+def _record_sites(acc, lanes, medium, config: SpectralConfig, w, emitted, interact, x, y, z_abs, med, xi) -> dict:
+    """Sample emission sites (module docstring) into the buffer, and book the expected conversions."""
+    total = jnp.sum(emitted, axis=1)
+    units = jax.lax.stop_gradient(site_units(medium, config))
+    strength = jnp.max(emitted / units, axis=1)
+    q = jnp.minimum(1.0, config.image.site_rate * strength)
+    take = interact & (total > 0) & (xi < q)
+    power = emitted / jnp.where(q > 0, q, 1.0)[:, None]
+    sites = _append_sites(acc.sites, take, position=jnp.stack([x, y, z_abs], -1), layer=lanes.layer, medium=med,
+                          power=power, origin=lanes.origin)
+    # the weight converted out of each band (expected), as first conversions or re-conversions
+    nb, act = config.num_bands, jnp.asarray(config.active)
+    psum = medium.psum.reshape(-1, nb)[:, act][med]
+    out = (w * psum).astype(jnp.float64)
+    again = lanes.converted[:, None]
+    flux = acc.flux.at[act, 2].add(jnp.where(again, 0.0, out).sum(0)).at[act, 3].add(jnp.where(again, out, 0.0).sum(0))
+    return {"sites": sites, "flux": flux}
+
+
+def site_units(medium, config: SpectralConfig) -> Array:
+    """u [slots]: the most any medium emits into each band per unit weight of the source's spectrum,
+    max over media and excitation bands i of s_i P[m, i, k] / max s (1 where nothing emits)."""
+    nb, act = config.num_bands, jnp.asarray(config.active)
+    conv = medium.conv.reshape(config.num_media, nb, nb)[:, act][:, :, act]
+    source = medium.power[act] / jnp.max(medium.power[act])
+    # light converted once can convert again: its own bands count as sources too
+    carried = jnp.maximum(source, (conv.max((0, 1)) > 0).astype(source.dtype))
+    u = jnp.max(conv * carried[None, :, None], axis=(0, 1))
+    return jnp.where(u > 0, u, 1.0)
+
+
+def _append_sites(buf: _Sites, mask, **rows) -> _Sites:
+    cap = buf.position.shape[0]
+    slot = buf.count + jnp.cumsum(mask.astype(jnp.int64)) - 1
+    idx = jnp.where(mask & (slot < cap), slot, cap)
+    new = {k: getattr(buf, k).at[idx].set(v.astype(getattr(buf, k).dtype), mode="drop") for k, v in rows.items()}
+    added = mask.astype(jnp.int64).sum()
+    fits = jnp.minimum(added, cap - buf.count)
+    return buf._replace(count=buf.count + fits, overflow=buf.overflow + added - fits, **new)
+
+
+def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: SpectralConfig):
+    """Launch photons next_pid, ... (below `end`) from emission sites into lanes that are not alive:
+    photon i from site i // splits, an isotropic direction, 1/splits of the site's power, a carrier
+    band (shared) or its band (per band) drawn from the site's spectrum; fluorescence light."""
+    dtype = lanes.x.dtype
+    free = lanes.status != ALIVE
+    new_pid = acc.next_pid + jnp.cumsum(free.astype(jnp.int64)) - 1
+    start = free & (new_pid < end)
+    pid = jnp.where(start, new_pid, lanes.pid)
+    rng = _rng.seed_streams(words, pid.astype(jnp.uint32))
+    site = jnp.clip(pid // sites.splits, 0, sites.position.shape[0] - 1)
+    pos = sites.position[site].astype(dtype)
+    layer = sites.layer[site].astype(jnp.int32)
+    power = sites.power[site].astype(dtype) / sites.splits  # [lanes, slots]
+    xi_a, rng = _rng.next_uniform(rng, dtype)
+    xi_b, rng = _rng.next_uniform(rng, dtype)
+    xi_c, rng = _rng.next_uniform(rng, dtype)
+    cos_t = 2.0 * xi_a - 1.0
+    sin_t = jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
+    psi = 2.0 * jnp.pi * xi_b
+    total = jnp.sum(power, axis=1)
+    pick = _sample_index(jnp.cumsum(power, axis=1), xi_c)
+    if config.shared:
+        peak = jnp.max(power, axis=1)
+        w = peak
+        spectrum = power / jnp.where(peak > 0, peak, 1.0)[:, None]
+        band = pick
+    else:
+        w = total
+        spectrum = None
+        band = jnp.asarray(config.active, jnp.int32)[pick]
+    zeros = jnp.zeros_like(pos[:, 0])
+    new = lanes._replace(
+        x=pos[:, 0], y=pos[:, 1], z=pos[:, 2] - medium.z0[layer], ux=sin_t * jnp.cos(psi), uy=sin_t * jnp.sin(psi),
+        uz=cos_t, w=w, spectrum=spectrum,
+        path=None if lanes.path is None else jnp.zeros_like(lanes.path),
+        hits=None if lanes.hits is None else jnp.zeros_like(lanes.hits),
+        sleft=zeros, layer=layer, medium=sites.medium[site].astype(jnp.int32), band=band.astype(jnp.int32),
+        converted=jnp.ones(pos.shape[:1], bool), status=jnp.where(total > 0, ALIVE, KILLED).astype(jnp.int32),
+        pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(pos.shape[:1], jnp.int32),
+        origin=sites.origin[site].astype(jnp.int64),
+    )
+    lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
+    lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))
+    emitted = jnp.where(start[:, None], power, 0.0).astype(jnp.float64).sum(0)
+    act = jnp.asarray(config.active)
+    acc = acc._replace(next_pid=jnp.minimum(acc.next_pid + free.astype(jnp.int64).sum(), end),
+                       flux=acc.flux.at[act, 1].add(emitted))
+    return lanes, acc
