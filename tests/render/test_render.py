@@ -18,7 +18,10 @@ import pytest
 
 import tissuefit as tf
 from tissuefit import render as rd
-from tissuefit.render import _render
+from tissuefit.render import _bandwidth, _render
+from tissuefit.render._shading import fresnel_transmittance
+
+PHOTON_MAP = {"estimator": "photon-map"}
 
 
 def layer(mua, mus, g, *fluorophores):
@@ -77,6 +80,10 @@ def test_endoscope_geometry_and_errors():
         rd.RenderOptions(steps=0)
     with pytest.raises(ValueError, match="render.fluorescence"):
         rd.RenderOptions(fluorescence="both")
+    with pytest.raises(ValueError, match="render.estimator"):
+        rd.RenderOptions(estimator="kernel")
+    with pytest.raises(ValueError, match="render.batches"):
+        rd.RenderOptions(batches=1)
 
 
 def test_cone_light_launches_fill_the_cone():
@@ -109,13 +116,13 @@ def test_flat_field_matches_rd_under_the_angular_model(key, monkeypatch):
     radius = 0.8
     endo = rd.Endoscope(beta_deg=0.0, fov_deg=30.0, width=24, height=24)
     got = rd.render(tissue, endo, photons=200_000, key=key, illumination=rd.Floodlight(radius),
-                    options=rd.RenderOptions(specular_deg=0.0))
-    assert not built and got.volume_photons == 0  # no fluorophore: no volume map
+                    options=rd.RenderOptions(specular_deg=0.0, **PHOTON_MAP))
+    assert not built and got.maps.volume_photons == 0  # no fluorophore: no volume map
     assert got.hit.all() and got.covered.all()
     trace = got.trace
     _, d = endo.pixel_rays()
     cos_o = np.asarray(d)[:, 2].reshape(24, 24)
-    t = np.asarray(_render.fresnel_transmittance(1.0, 1.1, jax.numpy.asarray(cos_o)))
+    t = np.asarray(fresnel_transmittance(1.0, 1.1, jax.numpy.asarray(cos_o)))
     z = rd.angular_norm(1.0, 1.1, "fresnel")
     e = 1.0 / (math.pi * radius**2)
     for b in range(2):
@@ -135,20 +142,21 @@ def test_march_fluorescence_equals_the_escaping_fluorescence_radiance(key):
     """Violet light on a homogeneous PpIX tissue: the red image's march (volume map: arrivals
     times albedo and phase, plus isotropic emission; exact exponential steps; n^2 law and Fresnel
     at the surface) matches the radiance of the converted photons escaping within 20 deg of the
-    normal, counted directly from the surface records: sum w / (A pi (1 - cos^2 20 deg))."""
+    normal, counted directly from the surface records: sum w / (A pi (1 - cos^2 20 deg)); and so
+    does the next-event estimator's image (three estimators of one quantity)."""
     bands = tf.BandGrid([400.0, 640.0], 16.0)
     ppix = tf.protoporphyrin_ix(bands, c=30.0)
     tissue = tf.SpectralTissue([layer(2.0, 100.0, 0.8, ppix)], n=[1.4], thickness=[math.inf], bands=bands)
     spectrum = tf.BoxcarSpectrum(392.0, 408.0)
     radius = 0.6
     endo = rd.Endoscope(beta_deg=0.0, fov_deg=12.0, distance=1.0, width=12, height=12)
-    options = rd.RenderOptions(specular_deg=0.0, steps=12)
+    options = rd.RenderOptions(specular_deg=0.0, steps=12, **PHOTON_MAP)
     got = rd.render(tissue, endo, spectrum=spectrum, photons=60_000, key=key, illumination=rd.Floodlight(radius),
                     options=options)
-    assert got.volume_photons > 0 and got.emission_photons > 0
-    assert got.truncation[1] < 1e-4  # 12 mean free paths: nothing left out
-    march = got.fluorescence[1].mean()
-    assert got.stack[0].mean() > 0 and got.fluorescence[0].mean() >= 0
+    assert got.maps.volume_photons > 0 and got.maps.emission_photons > 0
+    assert got.maps.truncation[1] < 1e-4  # 12 mean free paths: nothing left out
+    march = got.maps.fluorescence[1].mean()
+    assert got.stack[0].mean() > 0 and got.maps.fluorescence[0].mean() >= 0
 
     # the same scene traced with surface records only (same tracer settings as the render)
     scene = tf.SpectralScene(tissue, source=tf.FlatBeam(radius=radius), spectrum=spectrum)
@@ -163,8 +171,15 @@ def test_march_fluorescence_equals_the_escaping_fluorescence_radiance(key):
     direct = w.sum() / (area * math.pi * (1 - mu0**2))
     direct_err = math.sqrt((w**2).sum()) / (area * math.pi * (1 - mu0**2))
     # the march averages over the image (+-0.1 cm): its noise from its own records, roughly
-    march_err = march / math.sqrt(max(got.volume_photons * (0.1 / radius) ** 2, 1.0))
+    march_err = march / math.sqrt(max(got.maps.volume_photons * (0.1 / radius) ** 2, 1.0))
     assert abs(march - direct) < 4 * math.hypot(direct_err, march_err), (march, direct, direct_err, march_err)
+    # and the next-event estimator (no kernel, no march: every interaction scores the camera)
+    nee = rd.render(tissue, endo, spectrum=spectrum, photons=60_000, key=jax.random.fold_in(key, 9),
+                    illumination=rd.Floodlight(radius), options=rd.RenderOptions(specular_deg=0.0, smoothing="none"))
+    nee_mean = nee.raw[1].mean()
+    nee_err = math.sqrt(nee.variance[1].sum()) / nee.variance[1].size
+    assert abs(nee_mean - direct) < 4 * math.hypot(direct_err, nee_err), (nee_mean, direct, direct_err, nee_err)
+    assert abs(nee_mean - march) < 4 * math.hypot(march_err, nee_err), (nee_mean, march, march_err, nee_err)
 
 
 @pytest.mark.slow  # four 20 x 20 renders, ~45 s on 2 cores: over the default suite's budget
@@ -174,7 +189,7 @@ def test_mirror_symmetry_at_normal_view(key):
     the difference between two seeds. At beta = 20 deg the x-mirror difference is far larger."""
     bands = tf.BandGrid([550.0], 16.0)
     tissue = plain_tissue(bands)
-    options = rd.RenderOptions(specular_deg=3.0, surface_radius=0.15)  # ~50 records per kernel
+    options = rd.RenderOptions(specular_deg=3.0, surface_radius=0.15, **PHOTON_MAP)  # ~50 records per kernel
 
     def image(beta, seed):
         endo = rd.Endoscope(beta_deg=beta, width=20, height=20, fov_deg=60.0)
@@ -206,8 +221,8 @@ def test_shading_matches_the_brute_force_reference(key, kernel):
     tissue = tf.SpectralTissue([layer(2.0, 100.0, 0.8, tf.collagen(bands, c=5.0))], n=[1.4], thickness=[math.inf],
                                bands=bands, regions=[cap])
     endo = rd.Endoscope(beta_deg=25.0, fov_deg=20.0, width=6, height=5, distance=0.5, separation=0.2)
-    options = rd.RenderOptions(kernel=kernel, specular_deg=0.0, steps=4, surface_radius=0.03)
-    got = rd.render(tissue, endo, photons=6_000, key=key, options=options, keep_records=True)
+    options = rd.RenderOptions(kernel=kernel, specular_deg=0.0, steps=4, surface_radius=0.03, **PHOTON_MAP)
+    got = rd.render(tissue, endo, photons=6_000, key=key, options=options, keep_records=True).maps
     assert got.records[1].count > 0 and got.records[2].count > 0
     assert got.emission_radius > got.volume_radius  # sparser emission records: a wider kernel
     surface, fluor = shade_reference(tissue, endo, got.records, surface_radius=0.03, volume_radius=got.volume_radius,
@@ -228,12 +243,12 @@ def test_automatic_bandwidth_counts_the_records_of_one_band():
     power = np.zeros((n, bands))
     power[np.arange(n), rng.integers(0, bands, n)] = rng.uniform(0.5, 1.5, n)
     queries = rng.uniform(-0.5, 0.5, (500, 2))
-    share = _render.band_share(power)
+    share = _bandwidth.band_share(power)
     assert share == pytest.approx(1 / bands)
-    assert _render.band_share(np.ones((10, bands))) == 1.0 and _render.band_share(np.ones((10, 1))) == 1.0
+    assert _bandwidth.band_share(np.ones((10, bands))) == 1.0 and _bandwidth.band_share(np.ones((10, 1))) == 1.0
     one_band = xy[power[:, 0] > 0]
-    expect = _render._auto_radius(one_band, queries, 48, 1)
-    got = _render._auto_radius(xy, queries, 48, 1, share)
+    expect = _bandwidth.auto_radius(one_band, queries, 48, 1)
+    got = _bandwidth.auto_radius(xy, queries, 48, 1, share)
     assert got == pytest.approx(expect, rel=0.08)
     # before: k = 27 among all 42 000 records; now k = 8 (the floor) among a band's 2 000: 2.5 x wider
-    assert got > 2 * _render._auto_radius(xy, queries, 48, 1)
+    assert got > 2 * _bandwidth.auto_radius(xy, queries, 48, 1)

@@ -85,7 +85,7 @@ import optimistix as optx
 
 from .._setup import float64
 from ..render import RenderOptions, render
-from ..render._render import variance_available
+from ..replay import variance_available
 from ._parameters import FitParameter, Layout
 from ._result import FitResult
 

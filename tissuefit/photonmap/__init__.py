@@ -23,6 +23,7 @@ from ._kernels import (
     Kernel as Kernel,
     Phase as Phase,
     henyey_greenstein as henyey_greenstein,
+    kernel_norm as kernel_norm,
     kernel_profile as kernel_profile,
 )
 from ._maps import (

@@ -50,6 +50,11 @@ _NORM = {
 }
 
 
+def kernel_norm(kernel: str, dim: int) -> float:
+    """The constant c of a kernel, K(u) = c shape(u^2) / r^dim (the table above)."""
+    return _NORM[dim][check_kernel(kernel)]
+
+
 def check_kernel(kernel) -> str:
     if kernel not in KERNELS:
         raise ValueError(f"kernel = {kernel!r}; allowed one of {', '.join(repr(k) for k in KERNELS)}")

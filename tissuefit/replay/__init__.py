@@ -9,8 +9,9 @@ distance and direction held fixed:
 - `trace_records(scene, ...)` -> `EscapeReplay`: a spectral trace whose escaping photons are all
   replayable: rd and escaping fluorescence per band at any nearby tissue, exactly in mua, mus,
   concentrations and spectral-model coefficients, to first order in g; effective sample size.
-- `RecordReplay(records, traced)`: any records traced with `RecordSpec(replay=True)` (the
-  renderer's maps use it: `tissuefit.render.render(..., replay=True)`).
+- `RecordReplay(records, traced)`: any records traced with `RecordSpec(replay=True)`.
+- `render_replay(result, tissue)` -> `RenderReplay`: a photon-map render (made with
+  `path_statistics=True`) as an explicit function of the tissue, with its Monte Carlo statistics.
 - `jacobian(f, x, batch=k)`: forward-mode Jacobian in batches of k directions (an image Jacobian's
   memory grows with the directions pushed at once).
 
@@ -20,6 +21,12 @@ boundaries; the likelihood ratio has no boundary terms). Differentiating them ra
 
 from ._jacobian import jacobian as jacobian
 from ._records import RecordReplay as RecordReplay, segment_log_ratio as segment_log_ratio
+from ._render import (
+    SQUARED_KERNEL as SQUARED_KERNEL,
+    RenderReplay as RenderReplay,
+    render_replay as render_replay,
+    variance_available as variance_available,
+)
 from ._tallies import (
     DIFFERENTIABLE as DIFFERENTIABLE,
     NOT_DIFFERENTIABLE as NOT_DIFFERENTIABLE,

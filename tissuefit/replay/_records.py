@@ -32,11 +32,7 @@ from jaxtyping import Array, Float
 
 from .._setup import float64
 from ..scene import SpectralTissue
-from ..transport import PhotonRecords
-
-TINY = 1e-30
-"""Floor [1/cm] under mus in log(mus/mus0): a replay at mus -> 0 stays finite (the ratio tends to 0)."""
-
+from ..transport import PhotonRecords, segment_log_ratio
 
 def _check_tissue(tissue, traced: SpectralTissue) -> None:
     if not isinstance(tissue, SpectralTissue):
@@ -47,18 +43,6 @@ def _check_tissue(tissue, traced: SpectralTissue) -> None:
             f"tissue: {tissue.num_media} media on {tissue.bands.num_bands} bands, but the records were traced "
             f"with {traced.num_media} media on {traced.bands.num_bands} bands; replay needs the same structure"
         )
-
-
-def segment_log_ratio(path, hits, score, props, props0) -> Float[Array, "n bands"]:
-    """log of a segment's weight ratio in every band: sum_m n_m log(mus/mus0) - L_m (mut - mut0)
-    + S_m (g - g0), with path, hits, score [n, media] and props (mua, mus, g) [media, bands]."""
-    (mua, mus, g), (mua0, mus0, g0) = props, props0
-    log_mus = jnp.where(mus0 > 0, jnp.log(jnp.maximum(mus, TINY) / jnp.where(mus0 > 0, mus0, 1.0)), 0.0)
-    dmut = (mua + mus) - (mua0 + mus0)
-    out = hits @ log_mus - path @ dmut
-    if score is not None:
-        out = out + score @ (g - g0)
-    return out
 
 
 class RecordReplay(eqx.Module):

@@ -42,6 +42,8 @@ class ImageResult(eqx.Module):
     - `batches` [batches, bands, H, W]: radiance per unit launched power [1/(cm^2 sr)] of each
       independent batch of photons; `image` [bands, H, W] their mean; `variance` [bands, H, W] the
       Monte Carlo variance of `image` (the batches' spread / batches).
+    - `tangent_batches` [batches, K, bands, H, W]: with `tangents`, each batch's derivative along
+      each tangent direction (path replay of every scored contribution); `tangents` their mean.
     - `photons`: launches traced; `sites` [generations]: emission sites traced in each generation;
       `emitted` [generations]: their power per launched photon (summed over bands);
       `untraced`: the power of sites of the generation after the last, left out (per launched photon).
@@ -56,10 +58,15 @@ class ImageResult(eqx.Module):
     untraced: float
     trace: SpectralResult
     timings: dict
+    tangent_batches: np.ndarray | None = None
 
     @property
     def image(self) -> np.ndarray:
         return self.batches.mean(axis=0)
+
+    @property
+    def tangents(self) -> np.ndarray | None:
+        return None if self.tangent_batches is None else self.tangent_batches.mean(axis=0)
 
     @property
     def variance(self) -> np.ndarray:
@@ -71,16 +78,23 @@ def _with_sites(scene: SpectralScene, sites: EmissionSites) -> SpectralScene:
     return SpectralScene(scene.tissue, source=sites, spectrum=scene.spectrum)
 
 
-def _traced_with_room(scene, key, photons, options, spectral, camera, site_rate, capacity, chunks, progress):
+def _traced_with_room(scene, key, photons, options, spectral, camera, site_rate, capacity, chunks, progress, tangents):
     """trace_spectral with a site buffer grown (and the trace repeated) until nothing overflows."""
     for _ in range(6):
         spec = ImageSpec(camera=camera, sites=capacity if scene.tissue.fluorescent else 0, site_rate=site_rate)
         out = trace_spectral(scene, key=key, photons=photons, options=options, spectral=spectral, image=spec,
-                             chunks=chunks, progress=progress)
+                             chunks=chunks, progress=progress, tangents=tangents)
         if not out.sites_overflow:
             return out, capacity
         capacity = bucket((out.sites.count + out.sites_overflow) * 1.25)
     raise RuntimeError("trace_image: the emission-site buffer kept overflowing")  # pragma: no cover
+
+
+def _add(total, part, scale):
+    """total + part * scale, with None for nothing yet (or no part)."""
+    if part is None:
+        return total
+    return part * scale if total is None else total + part * scale
 
 
 @float64
@@ -97,6 +111,7 @@ def trace_image(
     generations: int = 3,
     chunk_photons: int = CHUNK_PHOTONS,
     progress=None,
+    tangents: tuple = (),
 ) -> ImageResult:
     """Trace `photons` launches of `scene` and score what `camera` sees (module docstring).
 
@@ -111,6 +126,8 @@ def trace_image(
       fluorophore is the second); what the last leaves is reported in `ImageResult.untraced`.
     - `chunk_photons`: launches per chunk (bounds the emission sites held at once).
     - `progress`: optional callable `progress(launches_done)`.
+    - `tangents`: tissues shaped like `scene.tissue` whose leaves are directions in its coefficients:
+      the image's derivative along each is scored too (`ImageResult.tangent_batches`).
     Returns an `ImageResult`.
     """
     if not isinstance(scene, SpectralScene):
@@ -123,7 +140,8 @@ def trace_image(
     chunk_photons = check_positive_int("chunk_photons", chunk_photons, high=2**31)
     check_range("site_rate", site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
     timings = {"launches": 0.0, "sites": 0.0}
-    sums = None  # batch sums (per batch: sum over its photons of their radiance)
+    sums = dsums = None  # batch sums (per batch: sum over its photons of their radiance) and their tangents
+    tangents = tuple(tangents)
     emitted = np.zeros(generations)
     counts = np.zeros(generations, np.int64)
     untraced = 0.0
@@ -135,11 +153,12 @@ def trace_image(
         ck = jax.random.fold_in(key, c)
         t0 = time.perf_counter()
         done = (lambda k, s=start: progress(s + k)) if progress is not None else None
-        out, capacity = _traced_with_room(scene, ck, n, options, spectral, camera, site_rate, capacity, 1, done)
+        out, capacity = _traced_with_room(scene, ck, n, options, spectral, camera, site_rate, capacity, 1, done,
+                                          tangents)
         timings["launches"] += time.perf_counter() - t0
         first = first or out
-        part = out.image * n / camera.batches
-        sums = part if sums is None else sums + part
+        sums = _add(sums, out.image, n / camera.batches)
+        dsums = _add(dsums, out.image_tangents, n / camera.batches)
         sites = out.sites
         t1 = time.perf_counter()
         for gen in range(generations):
@@ -152,13 +171,15 @@ def trace_image(
             last = gen == generations - 1
             gk = jax.random.fold_in(ck, 1000 + gen)
             sub, _ = _traced_with_room(_with_sites(scene, launched), gk, m, options, spectral, camera, site_rate,
-                                       bucket(m * SITES_PER_PHOTON), 1, None)
-            sums = sums + sub.image * m / camera.batches
+                                       bucket(m * SITES_PER_PHOTON), 1, None, tangents)
+            sums = _add(sums, sub.image, m / camera.batches)
+            dsums = _add(dsums, sub.image_tangents, m / camera.batches)
             sites = sub.sites
             if last and sites is not None:
                 untraced += float(np.sum(sites.power))
         timings["sites"] += time.perf_counter() - t1
     batches = sums * camera.batches / photons
     return ImageResult(batches=batches, photons=photons, sites=tuple(int(c) for c in counts),
+                       tangent_batches=None if dsums is None else dsums * camera.batches / photons,
                        emitted=tuple(float(e) / photons for e in emitted), untraced=untraced / photons,
                        trace=dataclasses.replace(first, sites=None, image=None), timings=timings)

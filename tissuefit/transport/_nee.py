@@ -44,6 +44,7 @@ from ..scene import AbstractSource
 from . import _rng
 from ._camera import PinholeCamera, connect, hg_intensity
 from ._lanes import ALIVE, IDLE, KILLED, _expand
+from ._records import segment_log_ratio
 from ._spectral_state import SpectralConfig, _Sites
 from ._spectral_weights import _sample_index, band_weights
 
@@ -55,11 +56,16 @@ class ImageSpec(eqx.Module):
     - `sites`: capacity of the emission-site buffer (fluorescent scenes; 0 for none).
     - `site_rate`: emission sites per interaction of a launch-weight photon in the strongest
       emitter of a band (module docstring), in (0, 1].
+    - `tangents`: K >= 0 directions in the tissue's coefficients along which the image is
+      differentiated as it is scored (`trace_spectral(..., tangents=...)`; module docstring).
+    - `from_sites`: the photons start at `EmissionSites` (set by `trace_spectral`).
     """
 
     camera: PinholeCamera = eqx.field(static=True)
     sites: int = eqx.field(static=True, default=0)
     site_rate: float = eqx.field(static=True, default=0.1)
+    tangents: int = eqx.field(static=True, default=0)
+    from_sites: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not isinstance(self.camera, PinholeCamera):
@@ -67,6 +73,8 @@ class ImageSpec(eqx.Module):
         if not isinstance(self.sites, (int, np.integer)) or isinstance(self.sites, bool) or self.sites < 0:
             raise ValueError(f"image.sites = {self.sites!r}; allowed an integer >= 0 (buffer capacity)")
         check_range("image.site_rate", self.site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
+        if not isinstance(self.tangents, (int, np.integer)) or isinstance(self.tangents, bool) or not 0 <= self.tangents <= 64:
+            raise ValueError(f"image.tangents = {self.tangents!r}; allowed an integer 0 .. 64")
 
 
 class EmissionSites(AbstractSource):
@@ -75,13 +83,15 @@ class EmissionSites(AbstractSource):
 
     Fields (arrays, not differentiable: positions and powers of one trace): `position` [n, 3] (x, y,
     absolute depth) cm, `layer`, `medium` [n] int, `power` [n, slots], `origin` [n] int (the launch
-    each descends from: its image batch); `splits` static. Photon i starts at site i // splits."""
+    each descends from: its image batch), `tangent` [n, slots, K] (the power's derivative along the
+    trace's tangent directions, or None); `splits` static. Photon i starts at site i // splits."""
 
     position: Float[Array, "n 3"]
     layer: Int[Array, " n"]
     medium: Int[Array, " n"]
     power: Float[Array, "n slots"]
     origin: Int[Array, " n"]
+    tangent: Float[Array, "n slots k"] | None = None
     splits: int = eqx.field(static=True, default=1)
 
     def __check_init__(self):
@@ -101,7 +111,8 @@ class EmissionSites(AbstractSource):
             return np.concatenate([a, np.zeros((extra, *a.shape[1:]), a.dtype)])
 
         return EmissionSites(position=pad(self.position), layer=pad(self.layer), medium=pad(self.medium),
-                             power=pad(self.power), origin=pad(self.origin), splits=splits)
+                             power=pad(self.power), origin=pad(self.origin),
+                             tangent=None if self.tangent is None else pad(self.tangent), splits=splits)
 
     def launch(self, index, u):  # pragma: no cover - sites are launched by `refill_sites`
         raise TypeError("EmissionSites launch inside the tissue (refill_sites), not from the surface")
@@ -114,72 +125,105 @@ def slot_index(config: SpectralConfig, band: Array) -> Array:
     return jnp.asarray(table)[band]
 
 
-def _coefficients(medium, config: SpectralConfig, med):
-    """(mua, mus, g) [lanes, slots] of the active bands in each lane's medium."""
+def _active_props(mua, mus, g, conv, config: SpectralConfig):
+    """The flat medium tables as [media, slots] (and conv [media, slots, slots]) of the active bands."""
     nb, act = config.num_bands, jnp.asarray(config.active)
 
     def table(a):
-        return a.reshape(-1, nb)[:, act][med]
+        return a.reshape(-1, nb)[:, act]
 
-    return table(medium.mua), table(medium.mus), table(medium.g)
+    c = None if conv is None else conv.reshape(config.num_media, nb, nb)[:, act][:, :, act]
+    return table(mua), table(mus), table(g), c
 
 
-def _emission(w, medium, config: SpectralConfig, med) -> Array:
-    """E [lanes, slots]: the expected fluorescence weight emitted into each band, sum_i w_i P[m, i, k]."""
-    nb, act = config.num_bands, jnp.asarray(config.active)
-    conv = medium.conv.reshape(config.num_media, nb, nb)[:, act][:, :, act]
-    out = w @ conv[0]
-    for m in range(1, config.num_media):
-        out = jnp.where((med == m)[:, None], w @ conv[m], out)
-    return out
+def _values(props, spectrum_change, fixed, config: SpectralConfig):
+    """The light one interaction per lane scores into the camera, per band, and the fluorescence it
+    emits (module docstring), as functions of the media's coefficients `props` (mua, mus, g [media,
+    slots], conv [media, slots, slots] or None) and of `spectrum_change` [lanes, slots], the relative
+    change of the photon's spectrum (0 at the trace): at the traced coefficients both equal the traced
+    values, and their derivatives there are the likelihood-ratio derivatives (jvp along tangents).
+
+    `fixed`: the traced weights w0 [lanes, slots] arriving, the path statistics since launch or the
+    emission site (path, hits, score [lanes, media]), the medium, the cosine to the camera, and the
+    connection (lengths [lanes, media], factor [lanes]). Returns (value [lanes, slots], emitted E)."""
+    w0, path, hits, score, med, cos, lengths, factor = fixed
+    mua, mus, g, conv = props
+    if path is not None:
+        props0 = jax.tree.map(jax.lax.stop_gradient, (mua, mus, g))
+        w = w0 * jnp.exp(segment_log_ratio(path, hits, score, (mua, mus, g), props0)) * (1.0 + spectrum_change)
+    else:
+        w = w0
+    mut = mua + mus
+    # The interaction density mut at the vertex is the sampling's (held at the trace): scattering
+    # there is mus / mut0 and conversion P mut / mut0 (P is per interaction: mu_conv / mut).
+    mut0 = jax.lax.stop_gradient(mut)
+    inverse0 = jnp.where(mut0 > 0, 1.0 / jnp.where(mut0 > 0, mut0, 1.0), 0.0)
+    intensity = w * mus[med] * inverse0[med] * hg_intensity(g[med], cos[:, None])
+    emitted = None
+    if conv is not None:
+        conv = conv * (mut * inverse0)[:, :, None]
+        emitted = w @ conv[0]
+        for m in range(1, config.num_media):
+            emitted = jnp.where((med == m)[:, None], w @ conv[m], emitted)
+        intensity = intensity + emitted * (1.0 / (4.0 * math.pi))
+    value = intensity * jnp.exp(-(lengths @ mut)) * factor[:, None]
+    return value, emitted
 
 
 def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y, z_abs, med, path_in, xi):
-    """Score the camera's next-event estimate of this step's interactions into `acc.image`, and
-    sample emission sites into `acc.sites` (fluorescent scenes). `lanes` is the photon arriving
-    (weight, spectrum, direction, hits before this interaction); `path_in` its path lengths with
-    this hop; `xi` a uniform per lane for the site decision. Returns the accumulators."""
-    spec = config.image
-    cam = spec.camera
+    """Score the camera's next-event estimate of this step's interactions into `acc.image` (and,
+    with tangents, its derivatives), and sample emission sites into `acc.sites` (fluorescent
+    scenes). `lanes` is the photon arriving (weight, spectrum, direction, hits and score before this
+    interaction); `path_in` its path lengths with this hop; `xi` a uniform per lane for the site
+    decision. Returns the accumulators."""
+    cam = config.image.camera
     dtype = x.dtype
     conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
     if config.shared:
-        w = band_weights(lanes.w, lanes.spectrum, path_in, lanes.hits, lanes.band, medium)
+        w0 = band_weights(lanes.w, lanes.spectrum, path_in, lanes.hits, lanes.band, medium)
     else:
-        w = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=dtype) * lanes.w[:, None]
-    w = jnp.where(interact[:, None], w, 0.0)
-    mua, mus, g = _coefficients(medium, config, med)
-    mut = mua + mus
+        w0 = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=dtype) * lanes.w[:, None]
+    w0 = jnp.where(interact[:, None], w0, 0.0)
     cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
-    albedo = jnp.where(mut > 0, mus / jnp.where(mut > 0, mut, 1.0), 0.0)
-    intensity = w * albedo * hg_intensity(g, cos[:, None])
-    emitted = None
-    if config.fluorescent:
-        emitted = _emission(w, medium, config, med)
-        intensity = intensity + emitted * (1.0 / (4.0 * math.pi))
-    nb, act = config.num_bands, jnp.asarray(config.active)
-    mut_media = (medium.mua + medium.mus).reshape(-1, nb)[:, act]  # [media, slots]
-    tau = conn.lengths @ mut_media
-    value = intensity * jnp.exp(-tau) * conn.factor[:, None]
+    k = config.tangents
+    fixed = (w0, path_in if k else None, lanes.hits, lanes.score, med, cos, conn.lengths, conn.factor)
+    props = _active_props(medium.mua, medium.mus, medium.g, medium.conv if config.fluorescent else None, config)
+    no_change = jnp.zeros_like(w0)
+
+    def values(p, change):
+        return _values(p, change, fixed, config)
+
+    if k:
+        (dmua, dmus, dg), dconv = medium.dprops
+        tangents = jax.vmap(lambda a, b, c, d: _active_props(a, b, c, d if config.fluorescent else None, config))(
+            dmua, dmus, dg, dconv)
+        change = jnp.zeros((k,) + w0.shape, dtype) if lanes.dlog_s is None else jnp.moveaxis(lanes.dlog_s, -1, 0)
+        (value, emitted), (dvalue, demitted) = jax.vmap(
+            lambda t, c: jax.jvp(values, (props, no_change), (t, c)), out_axes=(None, 0))(tangents, change)
+        row_values = jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1)
+    else:
+        value, emitted = values(props, no_change)
+        demitted = None
+        row_values = value
     batch = (lanes.origin % cam.batches).astype(jnp.int32)
-    rows = cam.batches * cam.pixels
-    row = jnp.where(interact & conn.valid, batch * cam.pixels + conn.pixel, rows)
-    upd = {"image": acc.image.at[row].add(value.astype(jnp.float64), mode="drop")}
+    row = jnp.where(interact & conn.valid, batch * cam.pixels + conn.pixel, cam.batches * cam.pixels)
+    upd = {"image": acc.image.at[row].add(row_values.astype(jnp.float64), mode="drop")}
     if config.sites:
-        upd.update(_record_sites(acc, lanes, medium, config, w, emitted, interact, x, y, z_abs, med, xi))
+        upd.update(_record_sites(acc, lanes, medium, config, w0, emitted, demitted, interact, x, y, z_abs, med, xi))
     return acc._replace(**upd)
 
 
-def _record_sites(acc, lanes, medium, config: SpectralConfig, w, emitted, interact, x, y, z_abs, med, xi) -> dict:
+def _record_sites(acc, lanes, medium, config: SpectralConfig, w, emitted, demitted, interact, x, y, z_abs, med, xi) -> dict:
     """Sample emission sites (module docstring) into the buffer, and book the expected conversions."""
     total = jnp.sum(emitted, axis=1)
     units = jax.lax.stop_gradient(site_units(medium, config))
     strength = jnp.max(emitted / units, axis=1)
     q = jnp.minimum(1.0, config.image.site_rate * strength)
     take = interact & (total > 0) & (xi < q)
-    power = emitted / jnp.where(q > 0, q, 1.0)[:, None]
+    inverse = 1.0 / jnp.where(q > 0, q, 1.0)
+    tangent = None if demitted is None else jnp.moveaxis(demitted, 0, -1) * inverse[:, None, None]
     sites = _append_sites(acc.sites, take, position=jnp.stack([x, y, z_abs], -1), layer=lanes.layer, medium=med,
-                          power=power, origin=lanes.origin)
+                          power=emitted * inverse[:, None], origin=lanes.origin, tangent=tangent)
     # the weight converted out of each band (expected), as first conversions or re-conversions
     nb, act = config.num_bands, jnp.asarray(config.active)
     psum = medium.psum.reshape(-1, nb)[:, act][med]
@@ -205,7 +249,8 @@ def _append_sites(buf: _Sites, mask, **rows) -> _Sites:
     cap = buf.position.shape[0]
     slot = buf.count + jnp.cumsum(mask.astype(jnp.int64)) - 1
     idx = jnp.where(mask & (slot < cap), slot, cap)
-    new = {k: getattr(buf, k).at[idx].set(v.astype(getattr(buf, k).dtype), mode="drop") for k, v in rows.items()}
+    new = {k: getattr(buf, k).at[idx].set(v.astype(getattr(buf, k).dtype), mode="drop") for k, v in rows.items()
+           if v is not None}
     added = mask.astype(jnp.int64).sum()
     fits = jnp.minimum(added, cap - buf.count)
     return buf._replace(count=buf.count + fits, overflow=buf.overflow + added - fits, **new)
@@ -225,6 +270,10 @@ def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: S
     pos = sites.position[site].astype(dtype)
     layer = sites.layer[site].astype(jnp.int32)
     power = sites.power[site].astype(dtype) / sites.splits  # [lanes, slots]
+    dlog_s = None
+    if lanes.dlog_s is not None:  # the relative derivative of each band's power along the tangents
+        p0 = sites.power[site].astype(dtype)
+        dlog_s = sites.tangent[site].astype(dtype) / jnp.where(p0 > 0, p0, 1.0)[:, :, None]
     xi_a, rng = _rng.next_uniform(rng, dtype)
     xi_b, rng = _rng.next_uniform(rng, dtype)
     xi_c, rng = _rng.next_uniform(rng, dtype)
@@ -251,7 +300,7 @@ def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: S
         sleft=zeros, layer=layer, medium=sites.medium[site].astype(jnp.int32), band=band.astype(jnp.int32),
         converted=jnp.ones(pos.shape[:1], bool), status=jnp.where(total > 0, ALIVE, KILLED).astype(jnp.int32),
         pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(pos.shape[:1], jnp.int32),
-        origin=sites.origin[site].astype(jnp.int64),
+        origin=sites.origin[site].astype(jnp.int64), dlog_s=dlog_s,
     )
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
     lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))

@@ -28,6 +28,7 @@ never silently.
 from __future__ import annotations
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
@@ -157,3 +158,19 @@ REPLAY_FIELDS = ("score", "path0", "hits0", "score0", "band0", "exc0", "conv_med
 ROW_FIELDS = ("position", "direction", "power", "band", "converted", "photon", "emission", "path", "hits",
               *REPLAY_FIELDS)
 """Every per-record field (one row per record; `select` and `padded` carry each of them)."""
+
+
+TINY = 1e-30
+"""Floor [1/cm] under mus in log(mus/mus0): a replay at mus -> 0 stays finite (the ratio tends to 0)."""
+
+
+def segment_log_ratio(path, hits, score, props, props0) -> Float[Array, "n bands"]:
+    """log of a segment's weight ratio in every band: sum_m n_m log(mus/mus0) - L_m (mut - mut0)
+    + S_m (g - g0), with path, hits, score [n, media] and props (mua, mus, g) [media, bands]."""
+    (mua, mus, g), (mua0, mus0, g0) = props, props0
+    log_mus = jnp.where(mus0 > 0, jnp.log(jnp.maximum(mus, TINY) / jnp.where(mus0 > 0, mus0, 1.0)), 0.0)
+    dmut = (mua + mus) - (mua0 + mus0)
+    out = hits @ log_mus - path @ dmut
+    if score is not None:
+        out = out + score @ (g - g0)
+    return out

@@ -8,6 +8,7 @@ reaching them carry no weight (shared mode: not even a slot); no record buffers 
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import equinox as eqx
@@ -84,6 +85,7 @@ class SpectralResult(eqx.Module):
     its Monte Carlo noise), and in fluorescent scenes `sites`, the emission sites sampled
     (`EmissionSites`, powers per launched photon of this trace times its photon count: raw weights),
     `sites_overflow` the sites that did not fit (their light is missing: retrace with more room).
+    With `tangents`: `image_tangents` [batches, K, bands, H, W], the image's derivative along each.
     `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `budget_exhausted`.
     """
 
@@ -119,6 +121,7 @@ class SpectralResult(eqx.Module):
     surface_records: PhotonRecords | None = None
     volume_records: PhotonRecords | None = None
     image: np.ndarray | None = None
+    image_tangents: np.ndarray | None = None
     sites: EmissionSites | None = None
     sites_overflow: int = 0
 
@@ -188,6 +191,13 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
     )
 
 
+class _Inputs(eqx.Module):
+    """What the spectral lanes read: the scene, and the tangent tissues an image is differentiated along."""
+
+    scene: SpectralScene
+    tangents: tuple = ()
+
+
 class SpectralKernel(eqx.Module):
     """The spectral lanes behind `_trace._loop`'s kernel interface."""
 
@@ -197,16 +207,16 @@ class SpectralKernel(eqx.Module):
     def options(self) -> TraceOptions:
         return self.config.options
 
-    def medium(self, scene):
-        return medium_arrays(scene, self.config, jnp.dtype(self.options.precision))
+    def medium(self, inputs):
+        return medium_arrays(inputs.scene, self.config, jnp.dtype(self.options.precision), inputs.tangents)
 
-    def refill(self, lanes, acc, medium, scene, words, end):
-        if isinstance(scene.source, EmissionSites):
-            return refill_sites(lanes, acc, medium, scene.source, words, end, self.config)
-        return refill(lanes, acc, medium, scene, words, end, self.config)
+    def refill(self, lanes, acc, medium, inputs, words, end):
+        if self.config.launch_sites:
+            return refill_sites(lanes, acc, medium, inputs.scene.source, words, end, self.config)
+        return refill(lanes, acc, medium, inputs.scene, words, end, self.config)
 
-    def step(self, lanes, acc, medium, scene):
-        return step(lanes, acc, medium, scene.tissue, self.config)
+    def step(self, lanes, acc, medium, inputs):
+        return step(lanes, acc, medium, inputs.scene.tissue, self.config)
 
     def harvest(self, lanes, acc, medium):
         return harvest(lanes, acc, medium, self.config)
@@ -228,6 +238,7 @@ def trace_spectral(
     resume: TraceState | None = None,
     on_chunk=None,
     image: ImageSpec | None = None,
+    tangents: tuple = (),
 ) -> SpectralResult:
     """Trace `photons` photons of the scene's source spectrum through a `SpectralScene`.
 
@@ -237,6 +248,9 @@ def trace_spectral(
     - `records`: `RecordSpec`, capacities of the surface and volume photon records (default none).
     - `image`: `ImageSpec`, a camera to score next-event estimates into (default none; `_nee.py`).
       The scene's source may then be `EmissionSites` (fluorescence light from a previous trace).
+    - `tangents`: with an image, tissues shaped like `scene.tissue` whose leaves are directions in
+      its coefficients (e.g. `jax.jvp` of a parametrised tissue): the image's derivative along each
+      is scored too, by path replay of every scored contribution (`SpectralResult.image_tangents`).
     Returns a `SpectralResult`: per-band tallies normalised per launched photon, with records.
     """
     photons = check_positive_int("photons", photons, high=MAX_PHOTONS)
@@ -252,11 +266,18 @@ def trace_spectral(
         raise TypeError(f"image must be a tissuefit ImageSpec, got {type(image).__name__}")
     if isinstance(scene.source, EmissionSites) and image is None:
         raise ValueError("scene.source: emission sites are traced with an image (ImageSpec) only")
+    tangents = tuple(tangents)
+    if tangents and image is None:
+        raise ValueError("tangents: the derivative directions belong to an image (give image=ImageSpec(...))")
+    if image is not None:
+        image = dataclasses.replace(image, tangents=len(tangents), from_sites=isinstance(scene.source, EmissionSites))
+        if image.from_sites and tangents and scene.source.tangent is None:
+            raise ValueError("tangents: the emission sites carry no tangents; trace them with the same tangents")
     config = resolve_config(scene, options, spectral, records, image)
     dtype = jnp.dtype(options.precision)
     ndev = len(tuple(jax.devices() if devices is None else devices)[:photons])
     acc, exhausted = run_lanes(
-        SpectralKernel(config), scene, key=key, photons=photons, chunks=chunks, progress=progress,
+        SpectralKernel(config), _Inputs(scene, tangents), key=key, photons=photons, chunks=chunks, progress=progress,
         devices=devices, resume=resume, on_chunk=on_chunk,
         new_lanes=lambda n: idle_lanes(n, config, dtype),
         new_acc=lambda: zeros_acc(config, ndev, dtype),
@@ -343,11 +364,13 @@ def _image_parts(acc, config: SpectralConfig, photons: int, scene: SpectralScene
     if config.image is None:
         return {}
     cam = config.image.camera
-    sums = np.asarray(acc.image).sum(0)[:-1].reshape(cam.batches, cam.height, cam.width, config.slots)
-    image = np.zeros((cam.batches, config.num_bands, cam.height, cam.width))
+    k = config.tangents
+    sums = np.asarray(acc.image).sum(0)[:-1].reshape(cam.batches, cam.height, cam.width, 1 + k, config.slots)
     # batches are photon index mod B: each batch is 1/B of the photons, so its own mean is B sum / N
-    image[:, np.asarray(config.active)] = np.moveaxis(sums, -1, 1) * cam.batches / photons
-    out = {"image": image}
+    sums = np.moveaxis(sums, (3, 4), (1, 2)) * cam.batches / photons  # [B, 1 + K, slots, H, W]
+    full = np.zeros((cam.batches, 1 + k, config.num_bands, cam.height, cam.width))
+    full[:, :, np.asarray(config.active)] = sums
+    out = {"image": full[:, 0], "image_tangents": full[:, 1:] if k else None}
     if acc.sites is not None:
         sites = acc.sites
         rows = [np.arange(int(c)) for c in sites.count]
@@ -357,6 +380,7 @@ def _image_parts(acc, config: SpectralConfig, photons: int, scene: SpectralScene
 
         out["sites"] = EmissionSites(position=take(sites.position).astype(np.float64), layer=take(sites.layer),
                                      medium=take(sites.medium), power=take(sites.power).astype(np.float64),
-                                     origin=take(sites.origin))
+                                     origin=take(sites.origin),
+                                     tangent=None if sites.tangent is None else take(sites.tangent).astype(np.float64))
         out["sites_overflow"] = int(np.sum(sites.overflow))
     return out

@@ -282,8 +282,8 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     ix, iy, iz = _isotropic(xi_a, xi_b)
     cos_s = phys.sample_hg_cos(g_c, xi_a)
     replay = {}
-    if config.replay:
-        # HG score of this scattering (DESIGN.md §5): the g factor of the replayed weight
+    if config.scores:
+        # HG score of this scattering: the g factor of the replayed weight (replay, image tangents)
         scatter = onehot & (interact & ~convert)[:, None]
         score_in = lanes.score
         score = lanes.score + jnp.where(scatter, phys.hg_score(g_c, cos_s)[:, None], 0.0)
@@ -344,7 +344,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         out_lanes = out_lanes._replace(**{k: jnp.where(_expand(live, v), v, getattr(lanes, k)) for k, v in replay.items()})
     if acc.volume is not None:
         # the photon as it arrives at the interaction (its weight, spectrum and path statistics)
-        arriving = lanes._replace(path=path_in, score=score_in if config.replay else None)
+        arriving = lanes._replace(path=path_in, score=score_in if config.scores else None)
         here = jnp.stack([x, y, _pick(medium.z0, layer) + z], -1)
         rec = interact & (lanes.converted | config.records.volume_all)
         volume = _append(acc.volume, rec, **_record_rows(arriving, here, jnp.stack([lanes.ux, lanes.uy, uz], -1), lanes.band))

@@ -33,6 +33,21 @@ class SpectralConfig(eqx.Module):
         return self.mode == "shared"
 
     @property
+    def tangents(self) -> int:
+        """Directions the camera image is differentiated in (`ImageSpec.tangents`; 0 without an image)."""
+        return 0 if self.image is None else self.image.tangents
+
+    @property
+    def scores(self) -> bool:
+        """Lanes carry the Henyey–Greenstein score of their scatterings (replayable records, or image tangents)."""
+        return self.replay or self.tangents > 0
+
+    @property
+    def launch_sites(self) -> bool:
+        """Photons start at emission sites inside the tissue (`_nee.EmissionSites`), not from a source above."""
+        return self.image is not None and self.image.from_sites
+
+    @property
     def sites(self) -> bool:
         """Fluorescence by emission sites (`_nee.py`): no conversion is sampled in the trace; the
         expected emission of every interaction is scored and sampled into a site buffer instead."""
@@ -56,7 +71,7 @@ class SpectralConfig(eqx.Module):
     def track_path(self) -> bool:
         """Lanes carry path statistics (L, n per medium): shared paths need them for their band
         weights; per-band photons carry them only when records are kept (records report them)."""
-        return self.shared or self.records.any
+        return self.shared or self.records.any or self.tangents > 0
 
 
 class _Lanes(NamedTuple):
@@ -90,6 +105,7 @@ class _Lanes(NamedTuple):
     roulette: Array  # per_band: roulette's net weight in the current band since the last conversion
     steps: Array
     origin: Array | None = None  # image: the photon whose launch this light descends from (its batch)
+    dlog_s: Array | None = None  # image tangents, from sites: [lanes, slots, K] d log(spectrum) per direction
 
 
 class _Buffer(NamedTuple):
@@ -139,6 +155,7 @@ class _Sites(NamedTuple):
     origin: Array  # [cap] int64: the launch this light descends from
     count: Array
     overflow: Array
+    tangent: Array | None = None  # [cap, slots, K]: the power's derivative in each tangent direction
 
 
 class _Medium(NamedTuple):
@@ -156,6 +173,7 @@ class _Medium(NamedTuple):
     log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
     dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
     solid_angle: Array | None = None  # image: [pixels] the camera pixels' solid angles [sr]
+    dprops: tuple | None = None  # image tangents: (dmua, dmus, dg) [K, media * bands], dconv [K, media * bands, bands]
 
 
 def boosted(q_a, boost: float):
@@ -166,7 +184,24 @@ def boosted(q_a, boost: float):
     return boost * q_a / (1.0 + (boost - 1.0) * q_a)
 
 
-def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
+def _tangent_arrays(tissue, tangents, config: SpectralConfig, dtype):
+    """The derivatives of (mua, mus, g, conversion) along each tangent tissue (jvp of the tissue's
+    properties), flattened as `_Medium` holds them: ((dmua, dmus, dg) [K, media * bands], dconv)."""
+    import jax
+
+    def props(t):
+        mua, mus, g = t.properties()
+        conv = t.conversion() if config.fluorescent else jnp.zeros(mua.shape + mua.shape[-1:])
+        return mua, mus, g, conv
+
+    outs = [jax.jvp(props, (tissue,), (tan,))[1] for tan in tangents]
+    flat = [jnp.stack([o[k].reshape(-1) for o in outs]).astype(dtype) for k in range(3)]
+    nm, nb = outs[0][0].shape
+    dconv = jnp.stack([o[3].reshape(nm * nb, nb) for o in outs]).astype(dtype)
+    return tuple(flat), dconv
+
+
+def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
     t = scene.tissue
     geo = t.geometry
     mua, mus, g = t.properties()
@@ -207,6 +242,7 @@ def medium_arrays(scene, config: SpectralConfig, dtype) -> _Medium:
         psum=None if psum is None else psum.reshape(-1).astype(dtype), q=q, log_ratio=log_ratio,
         log_mut_ratio=log_mut_ratio, dmut=dmut,
         solid_angle=None if config.image is None else jnp.asarray(config.image.camera.solid_angles(), dtype),
+        dprops=_tangent_arrays(t, tangents, config, dtype) if config.tangents and tangents else None,
     )
 
 
@@ -214,7 +250,7 @@ def _replay_fields(n: int, config: SpectralConfig, dtype) -> dict:
     per_medium = lambda on: jnp.zeros((n, config.num_media), dtype) if on else None  # noqa: E731
     index = lambda on=True: jnp.zeros(n, jnp.int32) if config.history and on else None  # noqa: E731
     history_shared = config.history and config.shared
-    return dict(score=per_medium(config.replay), path0=per_medium(config.history), hits0=per_medium(config.history),
+    return dict(score=per_medium(config.scores), path0=per_medium(config.history), hits0=per_medium(config.history),
                 score0=per_medium(config.history), band0=index(not config.shared),
                 exc0=jnp.zeros((n, config.slots), dtype) if history_shared else None,
                 conv_medium=index(), conversions=index())
@@ -246,13 +282,14 @@ def zeros_acc(config: SpectralConfig, capacity_share: int, dtype) -> _Acc:
     image = sites = None
     if config.image is not None:
         cam = config.image.camera
-        image = jnp.zeros((cam.batches * cam.pixels + 1, config.slots), f64)
+        image = jnp.zeros((cam.batches * cam.pixels + 1, config.slots * (1 + config.tangents)), f64)
         if config.sites:
             cap = -(-config.image.sites // capacity_share)
             sites = _Sites(position=jnp.zeros((cap, 3), dtype), layer=jnp.zeros(cap, jnp.int32),
                            medium=jnp.zeros(cap, jnp.int32), power=jnp.zeros((cap, config.slots), dtype),
                            origin=jnp.zeros(cap, jnp.int64), count=jnp.zeros((), jnp.int64),
-                           overflow=jnp.zeros((), jnp.int64))
+                           overflow=jnp.zeros((), jnp.int64),
+                           tangent=jnp.zeros((cap, config.slots, config.tangents), dtype) if config.tangents else None)
     return _Acc(
         next_pid=jnp.zeros((), jnp.int64), rsp=jnp.zeros((), f64), totals=jnp.zeros((2, 2), f64),
         escape=jnp.zeros((nb, 4, 2), f64), deposit=jnp.zeros((nb, 4), f64), flux=jnp.zeros((nb, 4), f64),
@@ -273,4 +310,5 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
         layer=zi, medium=zi, band=zi, converted=jnp.zeros(lanes, bool),
         status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
         heat=zf, roulette=zf, steps=zi, origin=None if config.image is None else jnp.zeros(lanes, jnp.int64),
+        dlog_s=jnp.zeros((lanes, config.slots, config.tangents), dtype) if config.tangents and config.launch_sites else None,
     )

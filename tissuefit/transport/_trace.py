@@ -137,7 +137,8 @@ def _fingerprint(scene, words, photons, chunks, kernel, devices) -> str:
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(scene):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
-    digest.update(repr((type(scene.source).__name__, photons, chunks, [int(w) for w in words], kernel, len(devices))).encode())
+    structure = jax.tree.structure(scene)  # the source's kind among it
+    digest.update(repr((str(structure), photons, chunks, [int(w) for w in words], kernel, len(devices))).encode())
     return digest.hexdigest()
 
 
