@@ -6,6 +6,7 @@ persistent compilation cache), or let each entry point switch float64 on for its
 (`tissuefit._setup`).
 """
 
+from ._outcome import Outcome as Outcome, OutcomeError as OutcomeError
 from ._setup import configure as configure, default_cache_dir as default_cache_dir
 from .scene import (
     DEFAULT_BANDS as DEFAULT_BANDS,
@@ -70,4 +71,5 @@ from .render import (
     RenderResult as RenderResult,
 )
 # `tissuefit.fit` is the function; the package's other names: `from tissuefit.fit import ...`
-from .fit import FitParameter as FitParameter, FitResult as FitResult, fit as fit
+from .fit import FitConfig as FitConfig, FitParameter as FitParameter, FitResult as FitResult, Measurement as Measurement
+from .fit import fit as fit

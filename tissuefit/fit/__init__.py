@@ -1,8 +1,18 @@
-"""Fitting tissue parameters to measured multi-spectral stacks (DESIGN.md §9): unconstrained
-parameters, residuals weighted by the noise model, optimistix solves on the replayed render with
-re-traces, uncertainties from the Jacobian, and the report."""
+"""Fitting tissue parameters to measured multi-spectral stacks.
 
-from ._fit import SOLVERS as SOLVERS, fit as fit
+- `fit(measured, tissue, parameters, ...)` -> `FitResult`: the render in the loop, re-traced with
+  fresh random numbers, unbiased Gauss–Newton steps from the render's batches (`Linearisation`),
+  settled landing points averaged; written as a solver (`FitState`, `init`, `step`, `terminate`).
+- `Measurement`: the measured stack as arrays; `FitConfig`: photons, batches, binning, loop limits.
+- `FitParameter` (unconstrained coordinates: log, logistic between bounds, identity; priors) and
+  `parameters_from_names` (the command line's `--free` names).
+"""
+
+from ._config import FitConfig as FitConfig
+from ._fit import METHOD as METHOD, fit as fit
+from ._linearisation import Linearisation as Linearisation, linearise as linearise
+from ._measurement import Measurement as Measurement
+from ._model import RenderModel as RenderModel, bin_image as bin_image, bin_mask as bin_mask
 from ._names import (
     initial_values as initial_values,
     parameters_from_names as parameters_from_names,
@@ -16,3 +26,5 @@ from ._result import (
     write_fit_plot as write_fit_plot,
     write_fit_report as write_fit_report,
 )
+from ._solver import FitState as FitState, Problem as Problem, StepRecord as StepRecord, init as init, step as step, terminate as terminate
+from ._uncertainty import Uncertainty as Uncertainty, uncertainty as uncertainty

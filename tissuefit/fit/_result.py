@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io as _io
 import json
 import math
@@ -15,17 +16,19 @@ class FitResult(eqx.Module):
 
     - `names` [p]: parameter labels ("scale" last when fitted); `values` [p] in the parameters'
       units; `uncertainties` [p]: standard errors, the two parts below in quadrature;
-      `statistical_uncertainties`: from (J^T J)^-1 at the optimum times the Birge ratio
-      max(1, chi2/dof); `simulation_uncertainties`: the optimum's spread with the simulation's
-      random numbers (linear response to renders at other keys); `covariance` [p, p] (their sum),
-      `correlation` [p, p]; `unconstrained` [p] x.
-    - `chi2`, `dof`, `birge_ratio`; `residuals` [bands, H, W]: (sim - meas)/sigma (0 where masked);
-      `simulated`, `measured` [bands, H, W]; `mask` [bands, H, W]; `wavelengths` [bands] nm.
-    - `history`: one dict per re-trace (values, chi2 before/after, inner steps and result, step
-      fraction, smallest ESS ratio, largest move in standard errors, seconds; of them the render
-      and the inner solve).
-    - `converged`, `reason`; `seconds`: wall time of the fit (without the final Jacobian render).
-    - `tissue`: the fitted `SpectralTissue`; `simulation_rel_variance` [bands]; `solver`; `settings`.
+      `statistical_uncertainties`: the measurement's noise through the fit, times the Birge ratio
+      max(1, chi2/dof); `simulation_uncertainties`: the estimate's own Monte Carlo noise (one
+      render's jackknife over its batches, divided by the estimates averaged); `covariance` [p, p]
+      (their sum), `correlation` [p, p]; `unconstrained` [p] x.
+    - `chi2`, `dof`, `birge_ratio` at the estimate; `residuals` [bands, H', W']: (sim - meas)/sigma
+      on the binned grid (0 where masked); `simulated`, `measured` [bands, H', W'] (binned);
+      `mask` [bands, H', W']; `wavelengths` [bands] nm; `binning`.
+    - `history`: a `StepRecord` per re-trace (phase, photons, values, chi2, step fraction, the
+      step's size against its jitter, estimates so far, seconds).
+    - `outcome` (`tissuefit.Outcome`), `converged` (outcome successful), `reason` (its message);
+      `seconds`: wall time of the loop (without the final render).
+    - `tissue`: the fitted `SpectralTissue`; `simulation_rel_variance` [bands]: the final render's
+      Monte Carlo variance per unit signal (q_b); `method`: what ran; `settings`.
     """
 
     names: tuple
@@ -44,14 +47,22 @@ class FitResult(eqx.Module):
     measured: np.ndarray
     mask: np.ndarray
     wavelengths: np.ndarray
+    binning: int
     history: tuple
-    converged: bool
-    reason: str
+    outcome: object
     seconds: float
     tissue: object
     simulation_rel_variance: np.ndarray
-    solver: str
+    method: str
     settings: dict
+
+    @property
+    def converged(self) -> bool:
+        return self.outcome.successful
+
+    @property
+    def reason(self) -> str:
+        return self.outcome.value
 
     def value(self, name: str) -> tuple[float, float]:
         """(value, standard error) of the parameter `name`."""
@@ -98,7 +109,7 @@ def fit_report(result: FitResult, *, extra: dict | None = None) -> dict:
     report = {
         "converged": bool(result.converged),
         "reason": result.reason,
-        "solver": result.solver,
+        "method": result.method,
         "parameters": [{"name": n, "value": float(v), "uncertainty": float(s), "statistical": float(a),
                         "simulation": float(b)}
                        for n, v, s, a, b in zip(result.names, result.values, result.uncertainties,
@@ -106,7 +117,7 @@ def fit_report(result: FitResult, *, extra: dict | None = None) -> dict:
         "correlation": {"names": list(result.names), "matrix": result.correlation},
         "chi2": result.chi2, "dof": result.dof, "birge_ratio": result.birge_ratio,
         "bands": result.band_metrics(),
-        "history": list(result.history),
+        "history": [dataclasses.asdict(h) for h in result.history],
         "seconds": result.seconds,
         "simulation_rel_variance": result.simulation_rel_variance,
         "settings": result.settings,
@@ -151,7 +162,7 @@ def fit_plot_png(result: FitResult, *, bands: int = 4) -> bytes:
     for ax in axes[3, 1:]:
         ax.axis("off")
     ax = axes[3, 0]
-    chi = [h["chi2_end"] for h in result.history]
+    chi = [h.chi2 for h in result.history]
     ax.semilogy(range(len(chi)), chi, "o-")
     ax.set_xlabel("re-trace"), ax.set_ylabel("chi2")
     ax.set_title("converged" if result.converged else "not converged", fontsize=8)

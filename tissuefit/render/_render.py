@@ -91,6 +91,10 @@ class RenderResult(eqx.Module):
     - `filter_transmission` [bands]: the observation filter's band averages (ones without one).
     - `timings` (dict of seconds per stage: trace, maps, geometry, estimate).
     - `trace`: the `SpectralResult` of the launches (tallies; records dropped).
+    - next-event estimator with `keep_batches`: `batches` [batches, bands, H, W], the raw diffuse
+      image of each independent batch of photons; with `tangents`: `tangents` [K, bands, H, W] the
+      raw diffuse image's derivative along each tangent tissue (path replay), and per batch
+      `tangent_batches` [batches, K, bands, H, W] with `keep_batches`. All times the filter.
     """
 
     stack: np.ndarray
@@ -109,6 +113,9 @@ class RenderResult(eqx.Module):
     variance: np.ndarray | None = None
     smoothing_px: np.ndarray | None = None
     maps: MapTerms | None = None
+    batches: np.ndarray | None = None
+    tangents: np.ndarray | None = None
+    tangent_batches: np.ndarray | None = None
 
 
 class _Setup(eqx.Module):
@@ -170,6 +177,8 @@ def render(
     keep_records: bool = False,
     path_statistics: bool = False,
     observation_filter: AbstractSpectrum | None = None,
+    tangents: tuple = (),
+    keep_batches: bool = False,
 ) -> RenderResult:
     """Trace the illumination into `tissue` and render the camera's stack (module docstring).
 
@@ -186,6 +195,10 @@ def render(
       (`tissuefit.replay.RenderReplay`).
     - `observation_filter`: the camera's filter transmission (e.g. `LongpassFilter`, or a
       `TabulatedSpectrum` of values in [0, 1]); every term is multiplied by its band average.
+    - next-event estimator only: `tangents`, tissues shaped like `tissue` whose leaves are
+      directions in its coefficients (`jax.jvp` of a parametrised tissue): the raw image's
+      derivative along each, by path replay (`RenderResult.tangents`); `keep_batches` keeps the
+      batch images (and their tangents) the image and its variance come from.
     Returns a `RenderResult`.
     """
     setup = _setup(tissue, endoscope, spectrum, illumination, options, trace_options, spectral, observation_filter)
@@ -194,6 +207,10 @@ def render(
     if setup.options.estimator != "photon-map" and (keep_records or path_statistics):
         raise ValueError("render: keep_records and path_statistics belong to the photon-map estimator "
                          "(options.estimator = 'photon-map'); next-event images keep no records")
+    tangents = tuple(tangents)
+    if setup.options.estimator != "nee" and (tangents or keep_batches):
+        raise ValueError("render: tangents and keep_batches belong to the next-event estimator (options.estimator = 'nee'); "
+                         "photon-map renders are differentiated by tissuefit.replay.render_replay")
     timings = {}
     t = time.perf_counter()
     view = camera_view(setup.endoscope, setup.options.margin)
@@ -205,9 +222,9 @@ def render(
     if setup.options.estimator == "nee":
         image = trace_image(scene, setup.endoscope.camera(setup.options.batches), key=key, photons=kept,
                             options=setup.trace_options, spectral=setup.spectral, splits=setup.options.splits,
-                            site_rate=setup.options.site_rate, progress=progress)
+                            site_rate=setup.options.site_rate, progress=progress, tangents=tangents)
         timings["trace"] = time.perf_counter() - t
-        return _finish_nee(setup, view, image, kept, fraction, timings)
+        return _finish_nee(setup, view, image, kept, fraction, timings, keep_batches)
     traced = _trace_records(setup, scene, key, kept, chunks, progress, path_statistics)
     timings["trace"] = time.perf_counter() - t
     return _finish_maps(setup, view, traced, kept, fraction, timings, keep_records or path_statistics, path_statistics)
@@ -217,7 +234,7 @@ def render(
 # next-event estimator
 
 
-def _finish_nee(setup: _Setup, view: View, image, kept: int, fraction: float, timings: dict) -> RenderResult:
+def _finish_nee(setup: _Setup, view: View, image, kept: int, fraction: float, timings: dict, keep_batches: bool) -> RenderResult:
     """Stage 4 for the next-event image: smoothing, specular term, filter."""
     t = time.perf_counter()
     e = setup.endoscope
@@ -241,6 +258,9 @@ def _finish_nee(setup: _Setup, view: View, image, kept: int, fraction: float, ti
         wavelengths=setup.tissue.bands.wavelengths, hit=hit, covered=covered, photons=kept, launched_fraction=fraction,
         filter_transmission=setup.transmission, timings=timings, trace=image.trace, raw=raw * w,
         variance=variance * w**2, smoothing_px=sigma,
+        batches=image.batches * fraction * w if keep_batches else None,
+        tangents=None if image.tangent_batches is None else image.tangents * fraction * w,
+        tangent_batches=image.tangent_batches * fraction * w if keep_batches and image.tangent_batches is not None else None,
     )
 
 
