@@ -20,8 +20,6 @@ import functools
 import os
 from pathlib import Path
 
-import jax
-
 CACHE_ENV = "TISSUEFIT_CACHE_DIR"
 """Environment variable: the persistent compilation cache's folder; `off` (or `0`, `none`) disables it."""
 
@@ -54,6 +52,8 @@ def configure(*, x64: bool = True, cpu_devices: int | str | None = "per-core",
       reused across processes (a repeated `tissuefit simulate` skips compilation).
     Returns what it set, for provenance: {"x64", "cpu_devices", "compilation_cache"}.
     """
+    import jax
+
     done: dict = {"x64": bool(jax.config.jax_enable_x64), "cpu_devices": None, "compilation_cache": None}
     if x64:
         jax.config.update("jax_enable_x64", True)
@@ -78,13 +78,15 @@ def configure(*, x64: bool = True, cpu_devices: int | str | None = "per-core",
             path = None
         if path is not None:
             jax.config.update("jax_compilation_cache_dir", str(path))
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
             jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
             done["compilation_cache"] = str(path)
     return done
 
 
 def _is_tracer(leaf) -> bool:
+    import jax
+
     return isinstance(leaf, jax.core.Tracer)
 
 
@@ -97,6 +99,8 @@ def float64(fn):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        import jax
+
         if jax.config.jax_enable_x64:
             return fn(*args, **kwargs)
         if any(_is_tracer(leaf) for leaf in jax.tree.leaves((args, kwargs))):

@@ -46,7 +46,7 @@ import numpy as np
 
 import tissuefit as tf
 import jax
-from tissuefit import cli as tf_cli
+from tissuefit.cli import _main as tf_cli_main, _simulate as tf_cli_simulate
 from tqdm import tqdm
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
@@ -124,7 +124,7 @@ def write_scene(folder: Path, photons: int, precision: str = "float32", seed: in
 
 def cli_chunks(photons: int) -> int:
     """The chunk count `tissuefit simulate` uses for `photons` (so in-process runs chunk alike)."""
-    return int(min(100, max(1, photons // tf_cli.PHOTONS_PER_CHUNK)))
+    return int(min(100, max(1, photons // tf_cli_simulate.PHOTONS_PER_CHUNK)))
 
 
 def energy_residual(result) -> float:
@@ -319,7 +319,7 @@ def machine_info() -> dict:
         "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "ram_gib": int(m.group(1)) / 2**20 if m else None,
         "python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
-        "tissuefit": tf_cli._version(),
+        "tissuefit": tf_cli_main.version(),
         "xla_devices": [str(d) for d in jax.local_devices()],
         "git_commit": _sh("git", "rev-parse", "--short", "HEAD"),
         "git_dirty": bool(_sh("git", "status", "--porcelain", "--untracked-files=no", "--", "tissuefit")),

@@ -41,7 +41,8 @@ import numpy as np
 import tissuefit as tf
 from tissuefit import io
 from tissuefit import render as rd
-from tissuefit.fit import FitParameter, write_fit_plot, write_fit_report
+from tissuefit.fit import FitParameter
+from tissuefit.io import write_fit_plot, write_fit_report
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

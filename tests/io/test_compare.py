@@ -2,6 +2,7 @@
 dead-band report, and `tissuefit compare` writing its JSON report and PNG panel."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,8 +45,8 @@ def pair(tmp_path):
     write_stack(tmp_path / "sim.tif", render_of(sim))
     camera = moved_bands(noise=2.0)
     camera[DEAD] = 0.0
-    measured = make_stack(camera, wavelengths=WAVELENGTHS, widths=[10.0] * 6, kind="measured", units="counts",
-                          noise={"a": 0.0, "b": 4.0})
+    measured = make_stack(camera, wavelengths=WAVELENGTHS, widths=[16.0] * 6, kind="measured", units="counts",
+                          noise={"a": 0.0, "b": 4.0})  # the simulation's bands
     write_stack(tmp_path / "camera.tif", measured)
     return tmp_path / "sim.json", tmp_path / "camera.json"
 
@@ -100,7 +101,9 @@ def test_compare_refuses_different_sizes_and_foreign_bands(tmp_path):
     far = make_stack(moved_bands(size=24, shifts=SHIFTS[:3]), wavelengths=[700.0, 710.0, 720.0], widths=[10.0] * 3,
                      kind="measured", units="counts")
     write_stack(tmp_path / "far.tif", far)
-    with pytest.raises(ValueError, match=r"no measured band lies within 1 nm of a simulated band"):
+    with pytest.raises(ValueError, match=r"no measured band can be compared: none lies within 1 nm of a simulated "
+                                         r"band's centre, and none can be resampled from them \(700 nm: its response "
+                                         r"\(695–705 nm\) is not inside the simulated bands \(408–508 nm\)\)"):
         compare_stacks(sim, read_measured(tmp_path / "far.json"))
     with pytest.raises(ValueError, match=r"normalise = 'max' is not allowed; allowed: 'stack', 'band', 'none'"):
         compare_stacks(sim, read_measured(tmp_path / "far.json"), normalise="max")
@@ -145,3 +148,84 @@ def test_cli_compare_bad_measured_input_exits_2(pair, tmp_path, capsys):
     (tmp_path / "bad").write_bytes(b"")
     assert cli.main(["compare", str(pair[0]), str(tmp_path / "bad.hdr"), "--out", str(tmp_path / "o")]) == 2
     assert "is not an ENVI header" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Measured bands that are not the simulation's: resampled by integrating their band responses
+# (issue 25, item 4: the bundled example's 540, 580, 630 nm bands were left out, 1 of 4 compared)
+
+GRID = np.arange(400.0, 721.0, 16.0)  # the renders' 21 bands, 16 nm boxcars
+EXAMPLE = Path(__file__).parents[2] / "data_spec" / "examples" / "measured" / "lesion_camera.json"
+
+
+def grid_stack(density, size, seed=0):
+    """A render-kind stack on GRID whose spectral radiance is `density` [21] per nm, constant inside
+    each band, times one texture (> 0): band j holds 16 * density[j] * texture."""
+    tex = 2.0 + moved_bands(size=size, shifts=SHIFTS[:1], seed=seed, gains=[1.0], offsets=[0.0])[0]
+    bands = len(GRID)
+    endoscope = {"beta_deg": 20.0, "distance_cm": 0.5, "separation_cm": 0.4, "light_radius_cm": 0.1,
+                 "cone_deg": 45.0, "fov_deg": 70.0, "width": size, "height": size, "target_cm": [0.0, 0.0]}
+    return tex, make_stack(16.0 * np.asarray(density)[:, None, None] * tex, wavelengths=GRID, widths=[16.0] * bands,
+                           name="sim", geometry={"endoscope": endoscope},
+                           illumination={"spectrum": {"kind": "flat"}, "band_power": [1 / bands] * bands},
+                           provenance={"scene_file": "/x/scene.toml", "scene_sha256": "0" * 64, "input_files": [],
+                                       "photons": 10, "seed": 0, "tissuefit_version": "0"},
+                           render={"settings": {}}, scene={"format": "tissuefit-scene/1"})
+
+
+def test_resample_weights_integrate_the_band_response():
+    from tissuefit.io._compare import resample_weights
+
+    widths = np.full(GRID.size, 16.0)
+    w, why = resample_weights(GRID, widths, "boxcar", 540.0, 10.0, "boxcar")  # 535-545 nm
+    assert why is None and set(np.flatnonzero(w)) == {8, 9}  # the 528 and 544 nm bands
+    np.testing.assert_allclose(w[[8, 9]], [1 / 16, 9 / 16], rtol=1e-12)
+    w, _ = resample_weights(GRID, widths, "boxcar", 416.0, 10.0, "boxcar")  # inside one band: its share
+    np.testing.assert_allclose(w, np.eye(GRID.size)[1] * 10 / 16, rtol=1e-12)
+    w, _ = resample_weights(GRID, widths, "boxcar", 603.0, None, "delta")  # the density of its band (600-616 nm)
+    np.testing.assert_allclose(w, np.eye(GRID.size)[13] / 16)
+    # a flat spectral density of 1 per nm: a Gaussian response of FWHM 10 nm integrates to 10 sqrt(pi / (4 ln 2)),
+    # less the 0.27 % beyond ±3 sigma
+    w, _ = resample_weights(GRID, widths, "boxcar", 600.0, 10.0, "gaussian")
+    assert float(w @ (16.0 * np.ones(GRID.size))) == pytest.approx(10 * np.sqrt(np.pi / (4 * np.log(2))) * 0.9973,
+                                                                   rel=1e-4)
+    assert resample_weights(GRID, widths, "boxcar", 720.0, 20.0, "boxcar")[1] == (
+        "its response (710–730 nm) is not inside the simulated bands (392–728 nm)")
+    assert "width is unknown" in resample_weights(GRID, widths, "boxcar", 540.0, None, "boxcar")[1]
+    assert "not boxcars" in resample_weights(GRID, widths, "gaussian", 540.0, 10.0, "boxcar")[1]
+
+
+def test_resampled_bands_equal_the_integral_of_a_piecewise_constant_spectrum(tmp_path):
+    from tissuefit.io import read_stack
+
+    density = np.linspace(1.0, 3.0, GRID.size) ** 2  # per nm, varying from band to band
+    tex, sim = grid_stack(density, 24)
+    write_stack(tmp_path / "sim.tif", sim)
+    # the camera's 10 nm bands integrate the same spectrum exactly: 535-545 nm = 1 nm of band 528 + 9 of band 544,
+    # 625-635 nm = 7 nm of band 624 + 3 of band 640
+    expected = {416.0: 10 * density[1], 540.0: density[8] + 9 * density[9], 630.0: 7 * density[14] + 3 * density[15]}
+    camera = make_stack(np.stack([v * tex for v in expected.values()]), wavelengths=list(expected), widths=[10.0] * 3,
+                        kind="measured", units=RENDER_UNITS)
+    write_stack(tmp_path / "camera.tif", camera)
+    result = compare_stacks(read_stack(tmp_path / "sim.json"), read_measured(tmp_path / "camera.json"),
+                            register=False, normalise="none")
+    rows = result.report["bands"]
+    assert [r["wavelength_nm"] for r in rows] == list(expected) and result.report["unmatched_bands"] == []
+    assert all(r["sim_band"] is None for r in rows)
+    assert [(x["sim_wavelength_nm"], x["weight"]) for x in rows[1]["resampled_from"]] == [(528.0, 0.0625),
+                                                                                        (544.0, 0.5625)]
+    np.testing.assert_allclose(result.sim, result.measured, rtol=1e-6)  # float32 files
+    assert all(r["ssim"] == pytest.approx(1.0) for r in rows)
+
+
+def test_cli_compares_every_band_of_the_bundled_example(tmp_path, capsys):
+    """The example camera stack (416, 540, 580 dead, 630 nm; 10 nm bands) against a render's 21 bands:
+    every live band is compared, the resampling is printed."""
+    _, sim = grid_stack(np.ones(GRID.size), 32)
+    write_stack(tmp_path / "sim.tif", sim)
+    assert cli.main(["compare", str(tmp_path / "sim.json"), str(EXAMPLE), "--out", str(tmp_path / "o")]) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((tmp_path / "o" / "compare.json").read_text())
+    assert report["summary"]["bands_compared"] == 3 and report["summary"]["bands_dead"] == 1
+    assert report["unmatched_bands"] == [] and len(report["bands"]) == 4
+    assert "measured 540 nm is not a simulated band: compared with 0.0625 x 528 nm + 0.562 x 544 nm" in printed

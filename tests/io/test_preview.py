@@ -83,3 +83,55 @@ def test_preview_and_contact_sheet_are_pngs_written_atomically(tmp_path):
     with pytest.raises(ValueError, match="contact sheet scale = 'log'; allowed 'band' or 'common'"):
         write_contact_sheet(tmp_path / "x.png", stack, scale="log")
     assert not (tmp_path / "x.png").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# The PDD preview (issue 25, item 5: under the violet light the true-colour preview was teal speckle
+# of collagen fluorescence, and the PpIX lesion that glows in the 624-720 nm bands could not be seen)
+
+VIOLET_POWER = [0.6, 0.39, 0.01] + [0.0] * 18  # the lights' power per band: violet, nothing above 440 nm
+
+
+def pdd_scene(red_in_lesion, red_elsewhere=0.0):
+    """[21, 8, 8]: violet remission 1e-3 (the observation filter's leak) and green autofluorescence
+    3e-4 everywhere; in the 624-720 nm bands `red_in_lesion` inside a 2 x 2 lesion, `red_elsewhere` outside."""
+    data = np.zeros((21, 8, 8))
+    data[:2] = 1e-3
+    data[3:12] = 3e-4 / 9
+    red = np.full((8, 8), red_elsewhere)
+    red[3:5, 3:5] = red_in_lesion
+    data[14:] = red / 7
+    return make_stack(data, wavelengths=WAVELENGTHS, widths=WIDTHS, kind="measured", units="-",
+                      illumination={"band_power": VIOLET_POWER})
+
+
+def test_a_fluorescence_image_is_previewed_as_a_pdd_camera_shows_it():
+    """Red PpIX fluorescence at 1/21 of the blue channel (remission and the blue of the autofluorescence): the
+    lesion is red, the mucosa blue."""
+    from tissuefit.io._preview import preview_mode
+
+    stack = pdd_scene(red_in_lesion=1e-4)
+    assert preview_mode(stack) == "pdd"
+    rgb = srgb_preview(stack).astype(int)
+    lesion, mucosa = rgb[3, 3], rgb[0, 0]
+    assert lesion[0] == 255 and mucosa[0] == 0  # red only where the PpIX is
+    assert mucosa[2] == 255 and mucosa[2] > mucosa[1] > 0  # blue remission, less green autofluorescence
+    assert lesion[1:].tolist() == mucosa[1:].tolist()  # the tissue's exposure is the same
+
+
+def test_a_faint_red_tail_is_not_blown_up_into_a_lesion():
+    """No PpIX: a red tail at 1/1000 of the blue everywhere gets at most 30x the blue's gain."""
+    stack = pdd_scene(red_in_lesion=1e-6, red_elsewhere=1e-6)
+    rgb = srgb_preview(stack, mode="pdd").astype(int)
+    assert rgb[..., 0].max() < 60 and rgb[..., 2].min() == 255
+
+
+def test_auto_picks_true_colour_when_every_band_is_lit():
+    from tissuefit.io._preview import preview_mode
+
+    lit = make_stack(np.ones((21, 2, 2)), wavelengths=WAVELENGTHS, widths=WIDTHS, kind="measured", units="-",
+                     illumination={"band_power": [1 / 21] * 21})
+    assert preview_mode(lit) == "true_colour" and preview_mode(measured(np.ones((21, 2, 2)))) == "true_colour"
+    np.testing.assert_array_equal(srgb_preview(lit), srgb_preview(lit, mode="true_colour"))
+    with pytest.raises(ValueError, match="preview mode = 'sepia'; allowed one of 'auto', 'true_colour', 'pdd'"):
+        srgb_preview(lit, mode="sepia")

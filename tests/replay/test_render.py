@@ -1,4 +1,4 @@
-"""Image gradients (`render(..., replay=True)` -> `RenderReplay`): the replayed stack is the render,
+"""Image gradients of photon-map renders (`replayed_render` -> `RenderReplay`): the replayed stack is the render,
 selected pixels' derivatives match finite differences of independent renders, modes agree, and
 pixels no photon reached stay finite."""
 
@@ -11,11 +11,12 @@ import pytest
 
 import tissuefit as tf
 from tissuefit import render as rd
+from tissuefit.replay import replayed_render
 
 K = 4.0  # standard errors (two bands x two parameters, standard errors from few renders)
 BANDS = tf.BandGrid([450.0, 640.0], 16.0)
 ENDO = rd.Endoscope(beta_deg=15.0, fov_deg=16.0, width=8, height=8, distance=1.0)
-OPTIONS = rd.RenderOptions(specular_deg=2.0, surface_radius=0.04, volume_radius=0.04)
+OPTIONS = rd.RenderOptions(specular_deg=2.0, surface_radius=0.04, volume_radius=0.04, estimator="photon-map")
 
 
 def tissue(p):
@@ -32,14 +33,19 @@ def block(stack):
     return stack[BLOCK].mean((1, 2))
 
 
-def render(p, seed, replay=False):
+def render(p, seed):
     return rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(seed), options=OPTIONS,
-                     illumination=rd.Floodlight(0.6), replay=replay)
+                     illumination=rd.Floodlight(0.6))
+
+
+def replayed(p, seed):
+    """(result, replay) of the render at p."""
+    return replayed_render(tissue(p), ENDO, photons=20_000, key=jax.random.key(seed), options=OPTIONS,
+                           illumination=rd.Floodlight(0.6))
 
 
 def test_replayed_stack_is_the_render_and_modes_agree():
-    got = render(P0, 0, replay=True)
-    rep = got.replay
+    got, rep = replayed(P0, 0)
     np.testing.assert_allclose(np.asarray(rep.stack(tissue(P0))), got.stack, rtol=1e-6, atol=1e-9 * got.stack.max())
     f = lambda p: block(rep.stack(tissue(p)))  # noqa: E731
     jf, jr = np.asarray(jax.jacfwd(f)(P0)), np.asarray(jax.jacrev(f)(P0))
@@ -58,20 +64,20 @@ def test_re_traces_share_the_replay_structure():
     import dataclasses
 
     options = dataclasses.replace(OPTIONS, step_length=0.01)  # as `fit` fixes it after its first render
-    a, b = (rd.render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,
-                      illumination=rd.Floodlight(0.6), replay=True) for p, s in ((P0, 0), (P0 * jnp.asarray([1.05, 0.97]), 1)))
-    assert a.surface_photons != b.surface_photons
-    static = [eqx.partition(r.replay, eqx.is_array)[1] for r in (a, b)]
+    (a, ra), (b, rb) = (replayed_render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,
+                                        illumination=rd.Floodlight(0.6)) for p, s in ((P0, 0), (P0 * jnp.asarray([1.05, 0.97]), 1)))
+    assert a.maps.surface_photons != b.maps.surface_photons
+    static = [eqx.partition(r, eqx.is_array)[1] for r in (ra, rb)]
     assert eqx.tree_equal(*static)
-    assert jax.tree.structure(a.replay) == jax.tree.structure(b.replay)
-    assert [np.shape(x) for x in jax.tree.leaves(a.replay)] == [np.shape(x) for x in jax.tree.leaves(b.replay)]
+    assert jax.tree.structure(ra) == jax.tree.structure(rb)
+    assert [np.shape(x) for x in jax.tree.leaves(ra)] == [np.shape(x) for x in jax.tree.leaves(rb)]
 
 
 @pytest.mark.slow  # 12 renders, ~100 s on 2 cores
 def test_pixel_gradients_match_finite_differences_of_independent_renders():
     rows = []
     for s in range(4):
-        rep = render(P0, s, replay=True).replay
+        rep = replayed(P0, s)[1]
         rows.append(np.asarray(jax.jacfwd(lambda p: block(rep.stack(tissue(p))))(P0)))  # [bands, 2]
     rows = np.array(rows)
     got, e_got = rows.mean(0), rows.std(0, ddof=1) / 2.0
@@ -90,11 +96,11 @@ def test_pixel_gradients_match_finite_differences_of_independent_renders():
 def test_pixels_no_photon_reached_have_finite_zero_gradients():
     """A narrow beam leaves most of a wide view dark: those pixels' values and derivatives are 0."""
     wide = rd.Endoscope(beta_deg=0.0, fov_deg=100.0, width=8, height=8, distance=1.0)
-    got = rd.render(tissue(P0), wide, photons=3000, key=jax.random.key(1), options=OPTIONS,
-                    illumination=rd.Floodlight(0.05), replay=True)
+    got, rep = replayed_render(tissue(P0), wide, photons=3000, key=jax.random.key(1), options=OPTIONS,
+                               illumination=rd.Floodlight(0.05))
     dark = ~got.covered
     assert dark.sum() > 10
-    jac = np.asarray(jax.jacfwd(lambda p: got.replay.stack(tissue(p)))(P0))  # [bands, H, W, 2]
+    jac = np.asarray(jax.jacfwd(lambda p: rep.stack(tissue(p)))(P0))  # [bands, H, W, 2]
     assert np.all(np.isfinite(jac))
     assert np.all(jac[:, dark] == 0)
 
@@ -109,12 +115,13 @@ def test_fluorescence_image_gradient_in_the_concentration():
         return tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=bands)
 
     def red(c, seed, replay=False):
-        return rd.render(fl_tissue(c), ENDO, spectrum=tf.BoxcarSpectrum(392.0, 408.0), photons=40_000,
-                         key=jax.random.key(seed), options=OPTIONS, illumination=rd.Floodlight(0.6), replay=replay)
+        call = replayed_render if replay else rd.render
+        return call(fl_tissue(c), ENDO, spectrum=tf.BoxcarSpectrum(392.0, 408.0), photons=40_000,
+                    key=jax.random.key(seed), options=OPTIONS, illumination=rd.Floodlight(0.6))
 
     rows = []
     for s in range(4):
-        rep = red(10.0, s, replay=True).replay
+        rep = red(10.0, s, replay=True)[1]
         rows.append(float(jax.grad(lambda c: block(rep.stack(fl_tissue(c)))[1])(jnp.asarray(10.0))))
     got, e_got = np.mean(rows), np.std(rows, ddof=1) / 2.0
     sides = [np.array([block(red(10.0 + sign * 3.0, 200 + 10 * sign + s).stack)[1] for s in range(4)]) for sign in (1, -1)]
@@ -132,23 +139,22 @@ def _brute_force_kernels(kernel):
     from tissuefit.photonmap._kernels import kernel_weight
 
     options = dataclasses.replace(OPTIONS, kernel=kernel)
-    got = rd.render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
-                    illumination=rd.Floodlight(0.6), replay=True)
-    rep = got.replay
+    got, rep = replayed_render(tissue(P0), ENDO, photons=5_000, key=jax.random.key(3), options=options,
+                               illumination=rd.Floodlight(0.6))
     sh, r = rep.shading, rep.shading.radii[0]
     n = int(rep.surface.records.count)
     xy = np.asarray(rep.surface.records.position, np.float32)[:n, :2].astype(np.float64)
     q = np.asarray(sh.q_xy, np.float32).astype(np.float64)
     d2 = ((q[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
-    return got, n, np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))
+    return got, rep, n, np.asarray(kernel_weight(jnp.asarray(d2), jnp.asarray(r * r), kernel=kernel, dim=2))
 
 
 @pytest.mark.parametrize("kernel", ["epanechnikov", "box"])
 def test_replay_variance_is_the_sum_of_squared_contributions(kernel):
     """`RenderReplay.variance` (squared kernel as a map kernel) against the brute-force sum of
     (K_i P_i)^2 over every record, at the traced tissue and at another."""
-    got, n, k = _brute_force_kernels(kernel)
-    rep, sh = got.replay, got.replay.shading
+    got, rep, n, k = _brute_force_kernels(kernel)
+    sh = rep.shading
     assert rep.has_variance
     for p in (P0, P0 * jnp.asarray([1.2, 0.9])):
         power = np.asarray(rep.surface.power(tissue(p)))[:n]
@@ -185,8 +191,8 @@ def test_replay_covariance_is_the_sum_over_records(kernel):
     """`RenderReplay.covariance` against brute-force per-record parts c_im = sum over bands and
     pixels of w_m K_i P_ib, Cov = c^T c - (sum c)(sum c)^T / N, at the traced tissue and at another;
     a one-pixel functional's variance is `variance` less the mean-square term."""
-    got, n, k = _brute_force_kernels(kernel)
-    rep, sh = got.replay, got.replay.shading
+    got, rep, n, k = _brute_force_kernels(kernel)
+    sh = rep.shading
     assert rep.surface_only  # no fluorophores: no volume map
     k = k * (np.asarray(sh.t_surface) * np.asarray(rep.hit).reshape(-1))[:, None]
     w = _functionals(got.stack.shape)
@@ -200,12 +206,12 @@ def test_replay_covariance_is_the_sum_over_records(kernel):
     assert got.photons == float(rep.photons)
     if kernel == "epanechnikov":
         var = np.asarray(rep.variance(tissue(P0)))[1, 4, 3]
-        mean = got.surface[1, 4, 3]
+        mean = got.maps.surface[1, 4, 3]
         np.testing.assert_allclose(rep.covariance(tissue(P0), w[2:])[0, 0], var - mean**2 / got.photons, rtol=1e-4)
 
 
 def test_replay_covariance_refuses_weights_of_another_shape():
-    rep = render(P0, 3, replay=True).replay
+    rep = replayed(P0, 3)[1]
     with pytest.raises(ValueError, match=r"weights have shape \(2, 8, 8\); expected \[m, 2, 8, 8\]"):
         rep.covariance(tissue(P0), np.zeros((2, 8, 8)))
 
@@ -213,9 +219,9 @@ def test_replay_covariance_refuses_weights_of_another_shape():
 @pytest.mark.slow  # 8 renders, ~30 s on 2 cores (the exactness test above runs by default)
 def test_replay_variance_predicts_the_spread_between_keys():
     """Sum (K_i P_i)^2 is the Monte Carlo variance of a pixel: renders at 8 keys."""
-    outs = [render(P0, 40 + s, replay=True) for s in range(8)]
-    stacks = np.array([o.stack for o in outs])
-    pred = np.mean([np.asarray(o.replay.variance(tissue(P0))) for o in outs], axis=0)
+    outs = [replayed(P0, 40 + s) for s in range(8)]
+    stacks = np.array([o.stack for o, _ in outs])
+    pred = np.mean([np.asarray(r.variance(tissue(P0))) for _, r in outs], axis=0)
     mean = stacks.mean(0)
     ok = mean > 0.1 * mean.max()
     ratio = stacks.var(0, ddof=1)[ok].mean() / pred[ok].mean()
@@ -228,7 +234,7 @@ def test_replay_variance_predicts_the_spread_between_keys():
 
     w = _functionals(stacks.shape[1:])
     f = np.einsum("mbhw,kbhw->km", w, stacks)
-    pred_cov = np.mean([o.replay.covariance(tissue(P0), w) for o in outs], axis=0)
+    pred_cov = np.mean([r.covariance(tissue(P0), w) for _, r in outs], axis=0)
     emp = np.cov(f, rowvar=False)
     lo, hi = chi2(7).ppf([0.005, 0.995]) / 7
     for m in range(3):
@@ -239,8 +245,8 @@ def test_replay_variance_needs_a_squarable_kernel():
     import dataclasses
 
     options = dataclasses.replace(OPTIONS, kernel="gaussian")
-    rep = rd.render(tissue(P0), ENDO, photons=2_000, key=jax.random.key(3), options=options,
-                    illumination=rd.Floodlight(0.6), replay=True).replay
+    rep = replayed_render(tissue(P0), ENDO, photons=2_000, key=jax.random.key(3), options=options,
+                          illumination=rd.Floodlight(0.6))[1]
     assert not rep.has_variance
     with pytest.raises(ValueError, match=r"kernel 'box' or 'epanechnikov'; got k = None, kernel = 'gaussian'"):
         rep.variance(tissue(P0))

@@ -13,6 +13,7 @@ import pytest
 
 import tissuefit as tf
 from tissuefit import cli
+from tissuefit.cli import _simulate
 from tissuefit.io import load_runs
 
 INF, NAN = math.inf, math.nan
@@ -364,7 +365,7 @@ def _must_not_trace(*args, **kwargs):
     ],
 )
 def test_cli_exits_2_with_a_one_line_message(tmp_path, capsys, monkeypatch, command, name, text, message):
-    monkeypatch.setattr(cli, "trace", _must_not_trace)
+    monkeypatch.setattr(_simulate, "trace", _must_not_trace)
     path = tmp_path / name
     path.write_text(text)
     assert cli.main([command, str(path)]) == 2

@@ -8,6 +8,7 @@ import pytest
 
 import tissuefit as tf
 from tissuefit import cli
+from tissuefit.cli import _simulate
 from tissuefit.io import load_trace_state, save_trace_state
 
 from ._scenes import three_layer
@@ -75,7 +76,7 @@ def test_cli_run_interrupted_after_a_checkpoint_resumes_to_the_uninterrupted_res
         'n = 1.0\nmua = 10.0\nmus = 90.0\ng = 0.75\nthickness = 0.02\n[run]\nphotons = 4000\nseed = 5\nlanes = 512\n'
         '[tallies]\nnames = ["rd_r", "tt_a"]\nnr = 10\nna = 5\n'
     )
-    monkeypatch.setattr(cli, "PHOTONS_PER_CHUNK", 1000)  # 4 chunks
+    monkeypatch.setattr(_simulate, "PHOTONS_PER_CHUNK", 1000)  # 4 chunks
     checkpoints = tmp_path / "ck"
     state_file = checkpoints / "vdh.state.npz"
     save = tf.io.save_trace_state
@@ -87,10 +88,10 @@ def test_cli_run_interrupted_after_a_checkpoint_resumes_to_the_uninterrupted_res
 
     monkeypatch.setattr(tf.io, "save_trace_state", save_then_interrupt)
     command = ["simulate", str(scene), "--json", "--checkpoint", str(checkpoints)]
-    with pytest.raises(KeyboardInterrupt):
-        cli.main(command)
+    assert cli.main(command) == 130  # Ctrl-C: one line naming the checkpoint, no traceback
+    assert capsys.readouterr().err.strip() == (f"tissuefit: interrupted; the run's state after its last finished "
+                                               f"chunk is in {state_file}: the same command resumes from it")
     assert load_trace_state(state_file).chunks_done == 2
-    capsys.readouterr()
     saved = []
     monkeypatch.setattr(tf.io, "save_trace_state", lambda path, state: (saved.append(state.chunks_done), save(path, state)))
 
@@ -100,6 +101,11 @@ def test_cli_run_interrupted_after_a_checkpoint_resumes_to_the_uninterrupted_res
     assert not state_file.exists()
     assert cli.main(["simulate", str(scene), "--json"]) == 0
     whole = json.loads(capsys.readouterr().out)
+    # the rate counts only the photons traced after resuming (issue 25, item 10: it counted all 4000)
+    assert resumed["resumed_photons"] == 2000 and "resumed_photons" not in whole
+    assert resumed["photons_per_second"] == pytest.approx(2000 / resumed["seconds"])
+    assert whole["photons_per_second"] == pytest.approx(4000 / whole["seconds"])
+    del resumed["resumed_photons"], resumed["units"]["resumed_photons"]
     for record in (resumed, whole):
         del record["seconds"], record["photons_per_second"]
     assert resumed == whole

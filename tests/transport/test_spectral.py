@@ -247,17 +247,18 @@ def test_shared_records_carry_band_powers(key):
 def test_no_fluorophore_means_no_conversion_code():
     """Skip what is not needed: the compiled step of a scene without fluorophores draws no
     conversion numbers and has no conversion loop; bands without light carry no weight."""
-    from tissuefit.transport._spectral import SpectralKernel, resolve_config
+    from tissuefit.transport._spectral import SpectralKernel, _Inputs, resolve_config
     from tissuefit.transport import _spectral_state as S
     import jax.numpy as jnp
 
     def step_jaxpr(scene):
         config = resolve_config(scene, tf.TraceOptions(lanes=32), tf.SpectralOptions(mode="per_band"), tf.RecordSpec())
         kernel = SpectralKernel(config)
-        medium = kernel.medium(scene)
+        inputs = _Inputs(scene)
+        medium = kernel.medium(inputs)
         lanes = S.idle_lanes(32, config, jnp.float32)
         acc = S.zeros_acc(config, 1, jnp.float32)
-        return str(jax.make_jaxpr(lambda l, a: kernel.step(l, a, medium, scene))(lanes, acc)), config
+        return str(jax.make_jaxpr(lambda l, a: kernel.step(l, a, medium, inputs))(lanes, acc)), config
 
     plain, config = step_jaxpr(tf.SpectralScene(tf.SpectralTissue([layer(1.0, 10.0, 0.9)], n=[1.4], thickness=[INF])))
     fluorescent, _ = step_jaxpr(fluorescent_scene())

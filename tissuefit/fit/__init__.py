@@ -6,6 +6,7 @@
 - `Measurement`: the measured stack as arrays; `FitConfig`: photons, batches, binning, loop limits.
 - `FitParameter` (unconstrained coordinates: log, logistic between bounds, identity; priors) and
   `parameters_from_names` (the command line's `--free` names).
+The report (JSON, PNG) is written by `tissuefit.io` (`write_fit`, `fit_report`, `fit_plot_png`).
 """
 
 from ._config import FitConfig as FitConfig
@@ -19,12 +20,6 @@ from ._names import (
     scene_parameters as scene_parameters,
 )
 from ._parameters import TRANSFORMS as TRANSFORMS, FitParameter as FitParameter
-from ._result import (
-    FitResult as FitResult,
-    fit_plot_png as fit_plot_png,
-    fit_report as fit_report,
-    write_fit_plot as write_fit_plot,
-    write_fit_report as write_fit_report,
-)
+from ._result import FitResult as FitResult
 from ._solver import FitState as FitState, Problem as Problem, StepRecord as StepRecord, init as init, step as step, terminate as terminate
 from ._uncertainty import Uncertainty as Uncertainty, uncertainty as uncertainty

@@ -1,7 +1,9 @@
 """A simulated stack against a measured one (data_spec/measured.md, "Comparison"): what `tissuefit compare` reports.
 
 Steps: the measured stack is prepared (`prepare_measured`: calibration, dead bands, band
-registration); bands are matched by centre wavelength; the measured stack is registered as a whole
+registration); bands are matched by centre wavelength, and a measured band with no simulated band
+at its centre is resampled from the simulation's bands by integrating its band response
+(`resample_weights`); the measured stack is registered as a whole
 onto the simulation's pixel grid (one shift, from all live bands' gradient images); the simulation
 is scaled by a least-squares gain (one for the stack by default: their units differ, the
 spectral shape is kept); then, per band over the valid pixels of live bands: SSIM
@@ -13,11 +15,14 @@ bands. Dead bands get no metrics, only their reason.
 from __future__ import annotations
 
 import io as _io
+import json
 import math
+from pathlib import Path
 
 import equinox as eqx
 import numpy as np
 
+from .._atomic import atomic_writer, write_text_atomic
 from ._measured import MeasuredStack
 from ._preprocess import (
     estimate_shift,
@@ -91,6 +96,61 @@ def spectral_angle(sim: np.ndarray, measured: np.ndarray, mask: np.ndarray) -> n
     return np.where(ok, np.degrees(np.arccos(cosine)), np.nan)
 
 
+GAUSSIAN_REACH = 3.0
+"""A Gaussian band response is integrated over ±3 sigma (99.7 % of it)."""
+
+
+def resample_weights(sim_wavelengths, sim_widths, sim_response: str, wavelength: float, width: float | None,
+                     response: str | None) -> tuple[np.ndarray | None, str | None]:
+    """Weights [sim bands] that give a measured band's value from the simulated bands, or (None, why not).
+
+    A simulated sample is the radiance integrated over its boxcar band (data_spec/stack.md); read as a
+    spectral radiance constant inside each band, L(lambda) = L_j / w_j, the measured band's value
+    is the integral of its response r (peak 1) against it: sum_j L_j (int_j r dlambda) / w_j. Boxcar
+    responses are integrated exactly, Gaussian ones (FWHM `width`) numerically over ±3 sigma, a
+    delta response takes L_j / w_j of the band holding its wavelength. The response must lie inside
+    the simulated bands (no extrapolation), and the simulation's bands must be boxcars."""
+    centres = np.asarray(sim_wavelengths, np.float64)
+    widths = np.asarray(sim_widths, np.float64)
+    if sim_response != "boxcar":
+        return None, f"the simulation's bands are {sim_response!r}, not boxcars: no piecewise-constant spectrum to integrate"
+    lows, highs = centres - widths / 2, centres + widths / 2
+    response = response or ("delta" if width is None else "boxcar")
+    if response != "delta" and (width is None or not width > 0):
+        return None, "its band width is unknown: its response cannot be integrated"
+    if response == "delta":
+        lo = hi = float(wavelength)
+    else:
+        half = width / 2 if response == "boxcar" else GAUSSIAN_REACH * width / (2 * np.sqrt(2 * np.log(2)))
+        lo, hi = float(wavelength) - half, float(wavelength) + half
+    # the response's support must be covered by the simulated bands (they may leave gaps)
+    order = np.argsort(lows)
+    reach = lo
+    for a, b in zip(lows[order], highs[order]):
+        if a <= reach + 1e-9 and b > reach:
+            reach = b
+    if lo < lows.min() - 1e-9 or reach < hi - 1e-9:
+        return None, (f"its response ({lo:g}–{hi:g} nm) is not inside the simulated bands "
+                      f"({lows.min():g}–{highs.max():g} nm)")
+    if response == "delta":
+        inside = (lows <= lo) & (lo < highs)
+        first = np.flatnonzero(inside)[:1]
+        weights = np.zeros_like(centres)
+        weights[first] = 1.0 / widths[first]
+        return weights, None
+    if response == "boxcar":
+        overlap = np.clip(np.minimum(highs, hi) - np.maximum(lows, lo), 0.0, None)
+        return overlap / widths, None
+    sigma = width / (2 * np.sqrt(2 * np.log(2)))
+    x = np.linspace(lo, hi, 4001)
+    r = np.exp(-0.5 * ((x - wavelength) / sigma) ** 2)
+    def integral(y):  # trapezoidal rule on the uniform grid x
+        return float(np.sum(y[1:] + y[:-1]) * (x[1] - x[0]) / 2)
+
+    weights = np.array([integral(np.where((x >= a) & (x < b), r, 0.0)) for a, b in zip(lows, highs)])
+    return weights / widths, None
+
+
 def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: bool = True, normalise: str = "stack",
                    wavelength_tolerance_nm: float = 1.0, upsample_factor: int = 100, sim_file: str | None = None
                    ) -> Comparison:
@@ -101,8 +161,11 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
     - `register`: register the measured bands among themselves and the measured stack onto the
       simulation's grid; `normalise`: "stack" (one least-squares gain, default), "band" (one per
       band: compares shapes only) or "none"; `wavelength_tolerance_nm`: largest centre difference
-      [nm] for two bands to match.
-    Raises `ValueError` for different image sizes, no matching band, or a bad option.
+      [nm] for two bands to match (centre and width; a measured band of unknown width matches by
+      its centre). A measured band that matches none is resampled from the simulated bands
+      (`resample_weights`; a band at a simulated band's centre but narrower takes its share of it); one that cannot be (outside the simulated bands, width
+      unknown) is listed in the report's `unmatched_bands` with the reason, and not compared.
+    Raises `ValueError` for different image sizes, no band to compare, or a bad option.
     """
     if normalise not in COMPARE_NORMALISE:
         raise ValueError(f"normalise = {normalise!r} is not allowed; allowed: {', '.join(map(repr, COMPARE_NORMALISE))}")
@@ -112,19 +175,30 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
                          "size (register the camera onto the render's grid first)")
     if not measured.calibrated:
         measured = prepare_measured(measured, register=register, upsample_factor=upsample_factor)
-    pairs, unmatched = [], []
+    pairs, unmatched = [], []  # pairs: (measured band, sim band or None, resampling weights or None)
+    sim_widths = np.asarray(sim.widths, np.float64)
     for b, wl in enumerate(measured.wavelengths):
         j = int(np.argmin(np.abs(sim.wavelengths - wl)))
-        if abs(sim.wavelengths[j] - wl) <= wavelength_tolerance_nm:
-            pairs.append((b, j))
+        width = None if measured.widths is None else float(measured.widths[b])
+        same_width = width is None or (abs(width - sim_widths[j]) <= wavelength_tolerance_nm
+                                       and (measured.response or "boxcar") == sim.response)
+        if abs(sim.wavelengths[j] - wl) <= wavelength_tolerance_nm and same_width:
+            pairs.append((b, j, None))
+            continue
+        weights, why = resample_weights(sim.wavelengths, sim_widths, sim.response, float(wl), width, measured.response)
+        if weights is not None:
+            pairs.append((b, None, weights))
         else:
-            unmatched.append({"band": b, "wavelength_nm": float(wl), "nearest_sim_nm": float(sim.wavelengths[j])})
+            unmatched.append({"band": b, "wavelength_nm": float(wl), "nearest_sim_nm": float(sim.wavelengths[j]),
+                              "reason": why})
     if not pairs:
-        raise ValueError(f"{measured.source}: no measured band lies within {wavelength_tolerance_nm:g} nm of a "
-                         f"simulated band (measured {measured.wavelengths.tolist()} nm, simulated "
-                         f"{sim.wavelengths.tolist()} nm)")
-    mb = [b for b, _ in pairs]
-    s_all = np.asarray(sim.data, dtype=np.float64)[[j for _, j in pairs]]
+        raise ValueError(f"{measured.source}: no measured band can be compared: none lies within "
+                         f"{wavelength_tolerance_nm:g} nm of a simulated band's centre, and none can be resampled "
+                         f"from them ({unmatched[0]['wavelength_nm']:g} nm: {unmatched[0]['reason']}); measured "
+                         f"{measured.wavelengths.tolist()} nm, simulated {sim.wavelengths.tolist()} nm")
+    mb = [b for b, _, _ in pairs]
+    sim_data = np.asarray(sim.data, dtype=np.float64)
+    s_all = np.stack([sim_data[j] if j is not None else np.tensordot(w, sim_data, axes=1) for _, j, w in pairs])
     m_all = measured.data[mb].copy()
     valid = measured.valid[mb].copy()
     good = measured.good[mb].copy()
@@ -156,10 +230,13 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
     s_all = s_all * gains[:, None, None]
     dead = {d["band"]: d["reason"] for d in measured.report.get("dead_bands", [])}
     rows = []
-    for k, (b, j) in enumerate(pairs):
+    for k, (b, j, w) in enumerate(pairs):
         row = {"wavelength_nm": float(measured.wavelengths[b]), "measured_band": b, "sim_band": j,
-               "sim_wavelength_nm": float(sim.wavelengths[j]), "good": bool(good[k]),
+               "sim_wavelength_nm": None if j is None else float(sim.wavelengths[j]), "good": bool(good[k]),
                "gain": _finite_or_none(float(gains[k]), 9)}
+        if w is not None:
+            row["resampled_from"] = [{"sim_band": int(i), "sim_wavelength_nm": float(sim.wavelengths[i]),
+                                      "weight": round(float(w[i]), 9)} for i in np.flatnonzero(w)]
         if good[k]:
             row.update(band_metrics(s_all[k], m_all[k], mask[k]))
         else:
@@ -295,3 +372,17 @@ def _wrap(text: str, width: int = 28) -> str:
     import textwrap
 
     return "\n".join(textwrap.wrap(text, width)[:4])
+
+
+def write_comparison(folder, comparison: Comparison, *, bands: list[int] | None = None, title: str | None = None
+                     ) -> list[Path]:
+    """Write what `tissuefit compare` writes into `folder` (created): compare.json (the report) and
+    compare.png (`comparison_panel_png` with `bands` and `title`). The picture is drawn before
+    either file is written; each is written atomically. Returns the files written."""
+    folder = Path(folder)
+    picture = comparison_panel_png(comparison, bands=bands, title=title)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(folder / "compare.json", json.dumps(comparison.report, indent=2, allow_nan=False) + "\n")
+    with atomic_writer(folder / "compare.png", binary=True) as handle:
+        handle.write(picture)
+    return [folder / "compare.json", folder / "compare.png"]

@@ -106,6 +106,17 @@ class MeasuredStack(eqx.Module):
         return dataclasses.replace(self, **changes)
 
 
+def measurement(stack: MeasuredStack):
+    """The `tissuefit.fit.Measurement` of a (prepared) measured stack: its data, noise variance and
+    mask (good bands, valid pixels) and wavelengths. Refuses a stack without a noise model."""
+    from ..fit import Measurement
+
+    if stack.variance is None:
+        raise ValueError(f"{stack.source}: the measured stack has no noise model (noise a, b); a fit weighs its "
+                         "residuals by the measurement's variance (data_spec/measured.md, 'noise')")
+    return Measurement(stack.data, stack.variance, stack.mask, stack.wavelengths)
+
+
 def read_measured(path, **metadata) -> MeasuredStack:
     """Read a measured stack (data_spec/measured.md) and check it: a `tissuefit-stack/1` sidecar of
     kind "measured" (`.json`, its `.tif`, or the stem), a folder of single-band images named by

@@ -1,6 +1,29 @@
-"""Pictures of a stack: an sRGB preview through the CIE 1931 observer, and a contact sheet of its bands.
+"""Pictures of a stack: an sRGB preview, and a contact sheet of its bands.
 
-The preview (data_spec/stack.md, "Preview") in five steps:
+The preview (data_spec/stack.md, "Preview") has two modes. `"auto"` (the default) picks
+`"pdd"` for a fluorescence image, a stack whose lights leave some of its bands dark (the
+sidecar's `illumination.band_power` below 1e-3 of its largest band: under the violet PDD light,
+everything above ~440 nm is fluorescence), and `"true_colour"` otherwise (white light, measured
+stacks without the lights' spectrum).
+
+`"pdd"`, what a photodynamic-diagnosis camera shows: a three-chip camera whose dichroic prism
+splits the light at 500 and 590 nm. Its blue, green and red channels are the sums of the bands
+whose centres fall below 500 nm, in 500–590 nm and at or above 590 nm. Blue and green (the
+tissue: the violet light the observation filter lets through, autofluorescence) share one
+exposure, their 99.5th percentile over pixels of max(B, G) becoming 1, so the mucosa keeps its
+blue-green balance. The red channel, where PpIX fluoresces (635 and 705 nm) and the lights put
+nothing, has its own exposure, its 99.5th percentile becoming 1 (a lesion covering a fraction of a
+per cent of the view reaches full red), as a PDD camera is balanced so that the weak red
+fluorescence shows next to the much brighter remission. So that a red holding only a faint tail (no
+PpIX: the red end of collagen's emission) is not blown up into a lesion, the red gain is at most
+30 times the blue-green gain. Then clip, sRGB transfer function, 8 bits. Its colours are not the
+eye's (the contact sheet gives the levels), and it is made for PpIX: a fluorophore emitting below
+590 nm is shown at the tissue's exposure. (Checked on the lesion scene,
+data_spec/examples/paper_lesion_render.toml, at 128 x 128 pixels and 1e5 photons: blue mucosa, a
+red polyp; the true-colour preview of the same stack is teal speckle of collagen fluorescence, the
+polyp's red at a tenth of the speckle's peaks.)
+
+`"true_colour"`, through the CIE 1931 observer, in five steps:
 
 1. Colour-matching weights per band: the mean of the CIE 1931 2° colour-matching functions
    (colour-science's `MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]`, 360–830 nm) over the
@@ -36,7 +59,18 @@ from ._stack import SpectralStack
 
 OBSERVER = "CIE 1931 2 Degree Standard Observer"
 EXPOSURE_PERCENTILE = 99.0
-"""Percentile of max(R, G, B) over pixels that the preview's exposure maps to 1."""
+"""Percentile of max(R, G, B) over pixels that the true-colour preview's exposure maps to 1."""
+
+PREVIEW_MODES = ("auto", "true_colour", "pdd")
+DARK_BAND_FRACTION = 1e-3
+"""A band whose share of the lights' power is below this fraction of the largest band's is dark:
+what the camera records there is fluorescence ("auto" then picks the PDD preview)."""
+PDD_SPLIT_NM = (500.0, 590.0)
+"""The PDD preview's model camera: blue below 500 nm, green 500-590 nm, red from 590 nm (band centres)."""
+PDD_PERCENTILE = 99.5
+"""Percentile over pixels of each PDD channel that its exposure maps to 1."""
+PDD_MAX_RED_GAIN = 30.0
+"""The PDD preview's red gain is at most this multiple of the blue and green channels' gain."""
 
 
 @functools.cache
@@ -84,14 +118,57 @@ def stack_to_xyz(stack: SpectralStack) -> np.ndarray:
     return colour.chromatic_adaptation(xyz, white, d65, method="Von Kries", transform="Bradford")
 
 
-def srgb_preview(stack: SpectralStack, *, percentile: float = EXPOSURE_PERCENTILE) -> np.ndarray:
-    """[H, W, 3] uint8 sRGB preview of `stack` (module docstring): CMFs over the bands, equal-energy
-    white adapted to D65 (Bradford), linear sRGB, exposure so that `percentile` (in (0, 100]) of
-    max(R, G, B) over pixels becomes 1, clip, sRGB encoding, 8 bits."""
+def preview_mode(stack: SpectralStack) -> str:
+    """The mode `"auto"` picks for `stack`: "pdd" when its lights leave a band dark (sidecar
+    `illumination.band_power`, module docstring), else "true_colour"."""
+    power = (stack.sidecar.get("illumination") or {}).get("band_power") if hasattr(stack, "sidecar") else None
+    if not power:
+        return "true_colour"
+    power = np.asarray([0.0 if v is None else v for v in power], np.float64)
+    return "pdd" if power.max() > 0 and np.any(power < DARK_BAND_FRACTION * power.max()) else "true_colour"
+
+
+def pdd_channels(stack: SpectralStack) -> np.ndarray:
+    """[H, W, 3] the PDD model camera's linear (R, G, B): sums of the bands whose centres lie at or
+    above 590 nm, in 500-590 nm and below 500 nm (module docstring)."""
+    data = np.asarray(stack.data, dtype=np.float64)
+    wl = np.asarray(stack.wavelengths, dtype=np.float64)
+    low, high = PDD_SPLIT_NM
+    return np.stack([data[wl >= high].sum(axis=0), data[(wl >= low) & (wl < high)].sum(axis=0),
+                     data[wl < low].sum(axis=0)], axis=-1)
+
+
+def srgb_preview(stack: SpectralStack, *, percentile: float | None = None, mode: str = "auto") -> np.ndarray:
+    """[H, W, 3] uint8 sRGB preview of `stack` (module docstring).
+
+    `mode`: "true_colour" (CMFs over the bands, equal-energy white adapted to D65 (Bradford),
+    linear sRGB, one exposure so that `percentile` (default 99) of max(R, G, B) over pixels becomes
+    1, clip, sRGB encoding, 8 bits), "pdd" (the PDD camera's three channels, blue and green exposed
+    together and red on its own at `percentile` (default 99.5), the red gain at most 30x the
+    others'), or "auto" (default:
+    "pdd" for a stack whose lights leave a band dark, `preview_mode`)."""
     import colour
 
+    if mode not in PREVIEW_MODES:
+        raise ValueError(f"preview mode = {mode!r}; allowed one of {', '.join(map(repr, PREVIEW_MODES))}")
+    mode = preview_mode(stack) if mode == "auto" else mode
+    if percentile is None:
+        percentile = PDD_PERCENTILE if mode == "pdd" else EXPOSURE_PERCENTILE
     if not 0 < percentile <= 100:
         raise ValueError(f"preview percentile = {percentile:g} is out of range; allowed (0, 100]")
+    if mode == "pdd":
+        rgb = np.clip(pdd_channels(stack), 0.0, None)
+
+        def level(values):
+            top = float(np.percentile(values, percentile))
+            return top if top > 0 else float(values.max())
+
+        tissue = level(rgb[..., 1:].max(axis=-1))  # blue and green share one exposure
+        red = max(level(rgb[..., 0]), tissue / PDD_MAX_RED_GAIN)
+        levels = np.array([red, tissue, tissue])
+        gain = np.where(levels > 0, 1.0 / np.where(levels > 0, levels, 1.0), 0.0)
+        encoded = colour.cctf_encoding(np.clip(rgb * gain, 0.0, 1.0), function="sRGB")
+        return np.round(np.clip(encoded, 0.0, 1.0) * 255).astype(np.uint8)
     rgb = colour.XYZ_to_sRGB(stack_to_xyz(stack), chromatic_adaptation_transform=None, apply_cctf_encoding=False)
     peak = np.max(rgb, axis=-1)
     level = float(np.percentile(peak, percentile))
@@ -111,24 +188,28 @@ def _png_text(stack: SpectralStack, what: str) -> dict:
                            + json.dumps(prov, sort_keys=True)}
 
 
-def preview_png(stack: SpectralStack, *, percentile: float = EXPOSURE_PERCENTILE) -> bytes:
+def preview_png(stack: SpectralStack, *, percentile: float | None = None, mode: str = "auto") -> bytes:
     """The 8-bit RGB PNG (bytes) of `srgb_preview`, one image pixel per stack pixel, row 0 at the
-    top; its text chunks name the stack and carry its provenance (scene, photons, seed, version)."""
+    top; its text chunks name the stack, the preview's mode and carry the stack's provenance
+    (scene, photons, seed, version)."""
     import io
 
     from PIL import Image, PngImagePlugin  # Pillow: matplotlib's image library (one of its dependencies)
 
     info = PngImagePlugin.PngInfo()
-    for key, value in _png_text(stack, "sRGB preview").items():
+    resolved = preview_mode(stack) if mode == "auto" else mode
+    what = "sRGB preview, " + ("PDD camera (red exposed on its own; not true colours)" if resolved == "pdd"
+                               else "true colour")
+    for key, value in _png_text(stack, what).items():
         info.add_text(key, value)
     buffer = io.BytesIO()
-    Image.fromarray(srgb_preview(stack, percentile=percentile)).save(buffer, format="PNG", pnginfo=info)
+    Image.fromarray(srgb_preview(stack, percentile=percentile, mode=mode)).save(buffer, format="PNG", pnginfo=info)
     return buffer.getvalue()
 
 
-def write_preview(path, stack: SpectralStack, *, percentile: float = EXPOSURE_PERCENTILE) -> None:
+def write_preview(path, stack: SpectralStack, *, percentile: float | None = None, mode: str = "auto") -> None:
     """Write the sRGB preview of `stack` as an 8-bit PNG at `path`, atomically (`srgb_preview`)."""
-    payload = preview_png(stack, percentile=percentile)
+    payload = preview_png(stack, percentile=percentile, mode=mode)
     with atomic_writer(path, binary=True) as handle:
         handle.write(payload)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 
@@ -56,23 +58,32 @@ def _json_array(values) -> list:
     return np.where(np.isfinite(array), array.astype(object), None).tolist()
 
 
-def _header(run, photons: int, seed: int, seconds: float) -> dict:
-    return {
+def _header(run, photons: int, seed: int, seconds: float, resumed_photons: int = 0) -> dict:
+    if not 0 <= int(resumed_photons) <= photons:
+        raise ValueError(f"resumed_photons = {resumed_photons}; allowed 0..{photons} (the run's photons)")
+    header = {
         "name": run.name,
         "source_file": run.source_file,
         "tissuefit_version": tissuefit_version(),
         "seed": int(seed),
         "photons": photons,
         "seconds": float(seconds),
-        "photons_per_second": photons / seconds if seconds > 0 else None,
+        # the rate of the work done in `seconds`: photons resumed from a checkpoint were traced before
+        "photons_per_second": (photons - int(resumed_photons)) / seconds if seconds > 0 else None,
     }
+    if resumed_photons:
+        header["resumed_photons"] = int(resumed_photons)
+    return header
 
 
-def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult, *, seed: int, seconds: float) -> dict:
+def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult, *, seed: int, seconds: float,
+                   resumed_photons: int = 0) -> dict:
     """The JSON-serialisable record of one run (a spectral run: see `spectral_result_to_dict`).
 
     Keys: `name`, `source_file`, `tissuefit_version`, `seed`; `photons`, `seconds` (wall time
-    including compilation), `photons_per_second`; the totals `rsp`, `rd`, `a`, `tt` with
+    including compilation), `photons_per_second` (the photons traced in `seconds`: a run resumed
+    from a checkpoint counts only what it traced after resuming, and records `resumed_photons`, the
+    photons of the chunks it resumed from); the totals `rsp`, `rd`, `a`, `tt` with
     `rd_stderr`, `a_stderr`, `tt_stderr` [-]; `steps`, `budget_exhausted`; one entry per requested
     tally, e.g. `rd_r: {r_cm, value, stderr}` with bin centres and values; `units` (unit of every
     number above, "-" for dimensionless); `scene`, the resolved input as a scene document
@@ -80,14 +91,14 @@ def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult,
     Non-finite numbers are written as null.
     """
     if isinstance(run, SpectralRun) or isinstance(result, SpectralResult):
-        return spectral_result_to_dict(run, result, seed=seed, seconds=seconds)
+        return spectral_result_to_dict(run, result, seed=seed, seconds=seconds, resumed_photons=resumed_photons)
     photons = int(result.photons)
-    record: dict = _header(run, photons, seed, seconds)
+    record: dict = _header(run, photons, seed, seconds, resumed_photons)
     record.update({key: _json_number(getattr(result, key)) for key in _TOTALS})
     record["steps"] = int(np.sum(np.asarray(result.steps)))
     record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
     units = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
-             **{key: "-" for key in _TOTALS}}
+             **({"resumed_photons": "-"} if "resumed_photons" in record else {}), **{key: "-" for key in _TOTALS}}
     for name, (axes, unit) in _TALLIES.items():
         values = getattr(result, name)
         if values is None:
@@ -108,11 +119,12 @@ def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult,
     return record
 
 
-def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: int, seconds: float) -> dict:
+def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: int, seconds: float,
+                            resumed_photons: int = 0) -> dict:
     """The JSON-serialisable record of one spectral run (data_spec/results.md, "Spectral run record").
 
     Keys: `kind` = "spectral"; `name`, `source_file`, `tissuefit_version`, `seed`, `photons`,
-    `seconds`, `photons_per_second` as for a single-band run; `mode` (the mode traced: "per_band"
+    `seconds`, `photons_per_second` (and `resumed_photons`) as for a single-band run; `mode` (the mode traced: "per_band"
     or "shared"); `bands: {wavelength_nm, width_nm, response, active}`; the totals over bands
     `rsp_total`, `rd_total`, `rd_total_stderr`, `tt_total`, `tt_total_stderr`, `a_total` and the
     escaping fluorescence `rd_fluor_total`, `tt_fluor_total` [-]; one list per band for each of
@@ -128,7 +140,7 @@ def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: i
     photons = int(result.photons)
     bands = result.bands
     active = set(result.active)
-    record: dict = {"kind": "spectral", **_header(run, photons, seed, seconds), "mode": result.mode}
+    record: dict = {"kind": "spectral", **_header(run, photons, seed, seconds, resumed_photons), "mode": result.mode}
     record["bands"] = {
         "wavelength_nm": [float(c) for c in bands.centers],
         "width_nm": [float(w) for w in bands.widths],
@@ -154,7 +166,7 @@ def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: i
     record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
     dimensionless = (*SPECTRAL_TOTALS, "rd_fluor_total", "tt_fluor_total", *SPECTRAL_PER_BAND)
     record["units"] = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
-                       "wavelength_nm": "nm", "width_nm": "nm", "records": "-", **{key: "-" for key in dimensionless}}
+                       **({"resumed_photons": "-"} if "resumed_photons" in record else {}), "wavelength_nm": "nm", "width_nm": "nm", "records": "-", **{key: "-" for key in dimensionless}}
     record["scene"] = scene_to_dict(run)
     record["input_files"] = [{"path": path, "sha256": digest} for path, digest in run.input_files]
     return record
@@ -163,3 +175,41 @@ def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: i
 def write_json(path, record) -> None:
     """Write `record` as indented JSON (strict: no NaN) to `path`, atomically."""
     write_text_atomic(path, json.dumps(record, indent=2, allow_nan=False) + "\n")
+
+
+def file_stems(names) -> list[str]:
+    """One file stem per run name, in order: characters other than letters, digits, `.`, `_` and `-`
+    become `_` (an empty result: "run"), and a stem that repeats gets `_2`, `_3`, ..."""
+    seen: dict[str, int] = {}
+    stems = []
+    for name in names:
+        stem = re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "run"
+        seen[stem] = seen.get(stem, 0) + 1
+        stems.append(stem if seen[stem] == 1 else f"{stem}_{seen[stem]}")
+    return stems
+
+
+def write_run(folder, run: Run | SpectralRun, result, *, record: dict, stem: str | None = None, plot: bool = False,
+              mco: bool = True) -> list[Path]:
+    """Write one run's files into `folder` (created): `<stem>.json` (the `record`, `result_to_dict`),
+    with `plot` `<stem>.png` (Rd(r), A(z), Tt(r) profiles; spectral runs: rd and escaping
+    fluorescence per band), and with `mco` for an .mci run the MCML output file its .mci names
+    (its file name, in `folder`). `stem` defaults to `file_stems([run.name])[0]`. Each file is
+    written atomically. Returns the files written."""
+    folder = Path(folder)
+    stem = file_stems([run.name])[0] if stem is None else stem
+    folder.mkdir(parents=True, exist_ok=True)
+    files = [folder / f"{stem}.json"]
+    write_json(files[-1], record)
+    spectral = isinstance(run, SpectralRun)
+    if plot:
+        from ._plot import write_profile_plot, write_spectrum_plot
+
+        files.append(folder / f"{stem}.png")
+        (write_spectrum_plot if spectral else write_profile_plot)(files[-1], record)
+    if mco and not spectral and run.mco_output is not None:
+        from ._mco import write_mco
+
+        files.append(folder / Path(run.mco_output).name)
+        write_mco(files[-1], run, result, seed=record["seed"], seconds=record["seconds"])
+    return files

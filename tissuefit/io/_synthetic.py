@@ -11,6 +11,9 @@ out black).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 
 from .._checks import check_range
@@ -55,3 +58,45 @@ def synthetic_counts(stack, *, rng: np.random.Generator, peak_counts: float = 30
             moved = np.zeros_like(moved)
         counts[b] = gain * rng.poisson(moved / gain) + rng.normal(0.0, read_noise, moved.shape)
     return counts, shifts
+
+
+def synthetic_measurement(run, spec, stack, *, render_seed: int, noise_seed: int = 0, peak_counts: float = 3000.0,
+                          gain: float = 1.0, read_noise: float = 2.0, max_shift_px: float = 0.0, dead_bands=(),
+                          folder=None):
+    """A synthetic measured stack (data_spec/measured.md) of a render, as `tissuefit synthesize`
+    writes it: `synthetic_counts` of `stack` [bands, H, W] (the render of `run`, a `SpectralRun`,
+    with `spec`, its `RenderSpec`, at `render_seed`), with the camera's noise and shifts drawn from
+    `numpy.random.default_rng(noise_seed)`.
+
+    The stack has units "counts", the noise model (a, b) = (`gain`, `read_noise`^2), the run's
+    bands, `scene_file` pointing at the run's scene file (relative to `folder`, where the stack
+    will be written, when it lies below it; else absolute), and a provenance with the render's
+    seed and photons, the camera's settings, the shifts applied [bands, 2] (row, column px) and the
+    truth (the scene's document). Returns (the `SpectralStack`, the shifts)."""
+    from ._report import tissuefit_version
+    from ._scenefile import scene_to_dict
+    from ._stack import make_stack
+
+    if not 0 <= int(noise_seed) <= 2**63 - 1:
+        raise ValueError(f"noise_seed = {noise_seed} is out of range; allowed [0, {2**63 - 1}] (integer)")
+    bands = run.scene.tissue.bands
+    counts, shifts = synthetic_counts(stack, rng=np.random.default_rng(int(noise_seed)), peak_counts=peak_counts,
+                                      gain=gain, read_noise=read_noise, max_shift_px=max_shift_px,
+                                      dead_bands=dead_bands)
+    scene_path = Path(run.source_file).resolve()
+    scene_file = str(scene_path)
+    if folder is not None:
+        try:
+            scene_file = str(scene_path.relative_to(Path(folder).resolve()))
+        except ValueError:
+            pass
+    camera = {"peak_counts": float(peak_counts), "gain": float(gain), "read_noise": float(read_noise),
+              "max_shift_px": float(max_shift_px), "noise_seed": int(noise_seed),
+              "dead_bands": sorted({int(b) for b in dead_bands}), "shifts_px": shifts.tolist()}
+    measured = make_stack(
+        counts, wavelengths=np.asarray(bands.wavelengths, np.float64), widths=np.asarray(bands.widths, np.float64),
+        kind="measured", units="counts", noise={"a": float(gain), "b": float(read_noise) ** 2}, scene_file=scene_file,
+        provenance={"synthesized_by": f"tissuefit {tissuefit_version()} synthesize", "scene": os.fspath(run.source_file),
+                    "render_seed": int(render_seed), "photons": int(spec.photons), "camera": camera,
+                    "truth": scene_to_dict(run)})
+    return measured, shifts

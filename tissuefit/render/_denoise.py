@@ -17,9 +17,8 @@ the smoothed image converges to the same limit as the raw one.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
-SIGMAS = (0.0, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0)
+SIGMAS = (0.0, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.3, 16.0)
 """Gaussian widths tried [pixels]."""
 
 TRUNCATE = 4.0
@@ -28,6 +27,8 @@ TRUNCATE = 4.0
 
 def _centre_weight(sigma: float) -> float:
     """F's diagonal for a full neighbourhood: the discrete kernel's central weight (2-D)."""
+    from scipy.ndimage import gaussian_filter
+
     delta = np.zeros((int(2 * TRUNCATE * sigma) * 2 + 3,) * 2)
     c = delta.shape[0] // 2
     delta[c, c] = 1.0
@@ -37,6 +38,8 @@ def _centre_weight(sigma: float) -> float:
 def smooth(image: np.ndarray, sigma: float, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised Gaussian convolution of `image` [..., H, W] over `mask` [H, W] (zero outside), and
     the diagonal of the linear map [H, W] (each pixel's weight on itself)."""
+    from scipy.ndimage import gaussian_filter
+
     m = mask.astype(np.float64)
     if sigma <= 0:
         return np.where(mask, image, 0.0), m

@@ -25,6 +25,7 @@ from ._render import (
     SQUARED_KERNEL as SQUARED_KERNEL,
     RenderReplay as RenderReplay,
     render_replay as render_replay,
+    replayed_render as replayed_render,
     variance_available as variance_available,
 )
 from ._tallies import (

@@ -224,3 +224,17 @@ def render_replay(result, tissue: SpectralTissue) -> RenderReplay:
                         shading=terms.shading, specular=jnp.asarray(result.specular),
                         transmission=jnp.asarray(transmission), hit=jnp.asarray(result.hit),
                         photons=jnp.asarray(float(result.photons)))
+
+
+def replayed_render(tissue: SpectralTissue, endoscope=None, **kwargs):
+    """A photon-map render of `tissue` and its `RenderReplay`: `tissuefit.render.render(tissue,
+    endoscope, **kwargs)` with `options.estimator = "photon-map"` and `path_statistics=True`.
+    Returns (`RenderResult`, `RenderReplay`)."""
+    import dataclasses
+
+    from ..render import render
+
+    options = kwargs.pop("options", RenderOptions())
+    options = dataclasses.replace(options, estimator="photon-map")
+    result = render(tissue, endoscope, options=options, path_statistics=True, **kwargs)
+    return result, render_replay(result, tissue)

@@ -1,0 +1,169 @@
+"""Every example in README.md runs as written (issue 25, item 1: the fit example used undefined names
+and failed, the replay example raised NameError).
+
+What is run, in the README's order, in one fresh Python process working in a scratch folder that
+holds links to the repository's files (so `data_spec/...` resolves and `out/...` is written there):
+
+- every ```python block, all in one namespace (a block may use what an earlier one defined);
+- every line of a ```sh block that starts with `tissuefit ` (continuation lines joined, `#`
+  comments dropped), as a `tissuefit` command with the arguments and photon counts it states.
+  Other lines (`make demo`, `make test`) are not run. Usage synopses with placeholders belong in
+  ```text blocks.
+
+One test per block reports that block's outcome. A command too slow for the suite calls for a
+smaller example in the README, not for a skip here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+FENCE = re.compile(r"^```(\w*)\s*$")
+
+
+@dataclass(frozen=True)
+class Block:
+    kind: str  # "python" or "sh"
+    line: int  # the README line of the opening fence
+    code: str  # python source, or one command per line (JSON list of argv lists for sh)
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind}@README.md:{self.line}"
+
+
+def _commands(lines: list[str]) -> list[list[str]]:
+    """The `tissuefit ...` commands of a sh block: continuation lines joined, comments dropped."""
+    joined, current = [], ""
+    for line in lines:
+        current += line.rstrip()
+        if current.endswith("\\"):
+            current = current[:-1] + " "
+            continue
+        joined.append(current)
+        current = ""
+    if current:
+        joined.append(current)
+    return [shlex.split(line, comments=True) for line in joined if line.lstrip().startswith("tissuefit ")]
+
+
+def readme_blocks(text: str) -> list[Block]:
+    """The runnable blocks of a README, in order: ```python blocks, and ```sh blocks with `tissuefit` commands."""
+    blocks, kind, start, body = [], None, 0, []
+    for number, line in enumerate(text.splitlines(), start=1):
+        fence = FENCE.match(line)
+        if fence and kind is None:
+            kind, start, body = fence.group(1) or "text", number, []
+        elif fence:
+            if kind == "python":
+                blocks.append(Block("python", start, "\n".join(body) + "\n"))
+            elif kind in ("sh", "bash", "shell"):
+                commands = _commands(body)
+                if commands:
+                    blocks.append(Block("sh", start, json.dumps(commands)))
+            kind = None
+        elif kind is not None:
+            body.append(line)
+    return blocks
+
+
+BLOCKS = readme_blocks(README.read_text(encoding="utf-8"))
+
+DRIVER = textwrap.dedent("""
+    import json, subprocess, sys, time, traceback
+    from pathlib import Path
+
+    blocks = json.loads(Path(sys.argv[1]).read_text())
+    tissuefit = str(Path(sys.executable).with_name("tissuefit"))
+    namespace = {"__name__": "__readme__"}
+    for block in blocks:
+        start = time.perf_counter()
+        outcome = {"name": block["name"], "ok": True, "error": ""}
+        if block["kind"] == "python":
+            try:
+                exec(compile(block["code"], block["name"], "exec"), namespace)
+            except BaseException:
+                outcome.update(ok=False, error=traceback.format_exc())
+        else:
+            for argv in json.loads(block["code"]):
+                done = subprocess.run([tissuefit, *argv[1:]], capture_output=True, text=True)
+                if done.returncode != 0:
+                    outcome.update(ok=False, error=f"{' '.join(argv)}: exit status {done.returncode}\\n"
+                                                   f"{done.stdout[-2000:]}{done.stderr[-4000:]}")
+                    break
+        outcome["seconds"] = round(time.perf_counter() - start, 1)
+        print("README-BLOCK " + json.dumps(outcome), flush=True)
+""")
+
+
+def _scratch(tmp: Path) -> Path:
+    """A folder holding links to the repository's top-level files and folders (not `out`, `.git`, `.venv`)."""
+    work = tmp / "readme"
+    work.mkdir()
+    for entry in ROOT.iterdir():
+        if entry.name not in ("out", ".git", ".venv") and not entry.name.startswith(".pytest"):
+            (work / entry.name).symlink_to(entry)
+    return work
+
+
+@pytest.fixture(scope="module")
+def outcomes(tmp_path_factory) -> dict[str, dict]:
+    tmp = tmp_path_factory.mktemp("readme")
+    work = _scratch(tmp)
+    spec = tmp / "blocks.json"
+    spec.write_text(json.dumps([{"name": b.name, "kind": b.kind, "code": b.code} for b in BLOCKS]))
+    driver = tmp / "driver.py"
+    driver.write_text(DRIVER)
+    done = subprocess.run([sys.executable, str(driver), str(spec)], cwd=work, capture_output=True, text=True,
+                          timeout=3600, env=dict(os.environ))
+    results = {}
+    for line in done.stdout.splitlines():
+        if line.startswith("README-BLOCK "):
+            outcome = json.loads(line[len("README-BLOCK "):])
+            results[outcome["name"]] = outcome
+    if done.returncode != 0 and len(results) < len(BLOCKS):
+        results["__driver__"] = {"ok": False, "error": done.stderr[-4000:]}
+    return results
+
+
+def test_the_readme_has_examples_to_run():
+    kinds = {b.kind for b in BLOCKS}
+    assert kinds == {"python", "sh"}, f"README.md: runnable blocks found: {[b.name for b in BLOCKS]}"
+
+
+@pytest.mark.parametrize("block", BLOCKS, ids=lambda b: b.name)
+def test_readme_block_runs(outcomes, block):
+    outcome = outcomes.get(block.name) or outcomes.get("__driver__") or {"ok": False, "error": "not run"}
+    assert outcome["ok"], f"{block.name} failed:\n{outcome['error']}"
+
+
+def test_the_block_reader():
+    text = textwrap.dedent("""\
+        ```sh
+        make demo   # not run
+        tissuefit simulate a.toml \\
+            --photons 10   # comment
+        ```
+        ```text
+        tissuefit render SCENE --out DIR [--photons N]
+        ```
+        ```python
+        x = 1
+        ```
+        """)
+    blocks = readme_blocks(text)
+    assert [(b.kind, b.line) for b in blocks] == [("sh", 1), ("python", 9)]
+    assert json.loads(blocks[0].code) == [["tissuefit", "simulate", "a.toml", "--photons", "10"]]
+    assert blocks[1].code == "x = 1\n"
