@@ -29,7 +29,8 @@ demo: $(STAMP)
 	@echo "truth: blood_fraction 0.02, blood_saturation 0.7 (data_spec/examples/fit_demo.toml); wrote out/demo/fit/fit.{json,png}"
 
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -n auto --durations=30
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -m slow

@@ -76,8 +76,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
     from . import io as io, photonmap as photonmap, render as render, replay as replay
     from ._outcome import Outcome as Outcome, OutcomeError as OutcomeError
     from ._setup import configure as configure, default_cache_dir as default_cache_dir
-    from .fit import FitConfig as FitConfig, FitParameter as FitParameter, FitResult as FitResult, Measurement as Measurement
-    from .fit import fit as fit
+    from .fit import FitConfig as FitConfig, FitParameter as FitParameter, FitResult as FitResult, Measurement as Measurement, fit as fit
     from .photonmap import (
         SurfaceMap as SurfaceMap,
         VolumeMap as VolumeMap,
@@ -88,8 +87,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         knn_radius as knn_radius,
         update_map as update_map,
     )
-    from .render import Endoscope as Endoscope, Floodlight as Floodlight, RenderOptions as RenderOptions, \
-        RenderResult as RenderResult
+    from .render import Endoscope as Endoscope, Floodlight as Floodlight, RenderOptions as RenderOptions, RenderResult as RenderResult
     from .scene import (
         DEFAULT_BANDS as DEFAULT_BANDS,
         AbstractSource as AbstractSource,

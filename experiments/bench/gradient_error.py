@@ -18,12 +18,12 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
-
-import tissuefit as tf
-from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 import jax
 import jax.numpy as jnp
+import numpy as np
+from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
+
+import tissuefit as tf
 from tissuefit import replay
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts

@@ -20,11 +20,11 @@ import resource
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
 
 import tissuefit as tf
-from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
-import jax
 from tissuefit.render import Endoscope, RenderOptions
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts

@@ -45,11 +45,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import tissuefit as tf
-import jax
-import jax.numpy as jnp
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

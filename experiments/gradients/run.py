@@ -30,11 +30,11 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import tissuefit as tf
-import jax
-import jax.numpy as jnp
 from tissuefit import replay
 from tissuefit.render import Endoscope, RenderOptions, render
 

@@ -42,12 +42,12 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+from tqdm import tqdm
 
 import tissuefit as tf
-import jax
 from tissuefit.cli import _main as tf_cli_main, _simulate as tf_cli_simulate
-from tqdm import tqdm
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

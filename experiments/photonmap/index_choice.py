@@ -31,12 +31,12 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
-
-import tissuefit.photonmap as pm
 import jax
 import jax.numpy as jnp
+import numpy as np
+
 import tissuefit
+import tissuefit.photonmap as pm
 
 tissuefit.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

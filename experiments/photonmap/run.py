@@ -43,13 +43,13 @@ from pathlib import Path
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 from scipy.special import lambertw
 
-import tissuefit.photonmap as pm
-import jax
-import jax.numpy as jnp
 import tissuefit
+import tissuefit.photonmap as pm
 
 tissuefit.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

@@ -39,8 +39,7 @@ import jax
 import numpy as np
 
 import tissuefit as tf
-from tissuefit import io
-from tissuefit import render as rd
+from tissuefit import io, render as rd
 from tissuefit.fit import FitParameter
 from tissuefit.io import write_fit_plot, write_fit_report
 

@@ -48,10 +48,10 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 import tissuefit as tf
-import jax
 from tissuefit.render import Endoscope, RenderOptions, render
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
@@ -59,6 +59,7 @@ tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX start
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from _common import machine  # noqa: E402  (experiments/_common.py: machine, commit and sources)
+
 ROOT = HERE.parents[1]
 BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
 MARK_BEGIN, MARK_END = "<!-- render:begin -->", "<!-- render:end -->"

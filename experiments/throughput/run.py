@@ -38,11 +38,11 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 import tissuefit as tf
-import jax
-import jax.numpy as jnp
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 

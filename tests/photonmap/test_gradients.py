@@ -83,7 +83,7 @@ def test_positions_are_not_differentiated(surface_case):
 
 def test_estimate_is_differentiable_in_tissue_parameters_through_path_statistics(key):
     """Records carry (L, n) per medium; each record's power is an explicit function of mua and mus
-    (DESIGN.md §5), so an exitance estimate differentiates to the tissue parameters through
+    (docs/design.md §5), so an exitance estimate differentiates to the tissue parameters through
     update_map and the estimator: jax.grad equals central differences of the same function, and
     d/dmua equals -sum K L w exactly (the pMC derivative)."""
     import tissuefit as tf

@@ -1,4 +1,4 @@
-"""The renderer against what physics says the picture must be (DESIGN.md §8).
+"""The renderer against what physics says the picture must be (docs/design.md §8).
 
 - flat field: a homogeneous semi-infinite tissue under a wide collimated beam, seen from above,
   renders rd x E x T(theta_o) / Z (the documented angular model) everywhere;
@@ -138,6 +138,7 @@ def test_flat_field_matches_rd_under_the_angular_model(key, monkeypatch):
         assert np.ptp(quads) < 2 * 4.0 * 2 / math.sqrt(seen), quads
 
 
+@pytest.mark.slow  # 160 s on 2 cores: the photon-map march (the paper's estimator, no longer the default)
 def test_march_fluorescence_equals_the_escaping_fluorescence_radiance(key):
     """Violet light on a homogeneous PpIX tissue: the red image's march (volume map: arrivals
     times albedo and phase, plus isotropic emission; exact exponential steps; n^2 law and Fresnel

@@ -59,9 +59,9 @@ def test_re_traces_share_the_replay_structure():
     """A fit's re-traces (nearby parameters, other keys: other record counts and extents) give
     replays of one static structure (padded buffers, rounded maps), so the replay and the inner
     solve compile once (a count that crosses a buffer size recompiles once more)."""
-    import equinox as eqx
-
     import dataclasses
+
+    import equinox as eqx
 
     options = dataclasses.replace(OPTIONS, step_length=0.01)  # as `fit` fixes it after its first render
     (a, ra), (b, rb) = (replayed_render(tissue(p), ENDO, photons=20_000, key=jax.random.key(s), options=options,

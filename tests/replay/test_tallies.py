@@ -93,10 +93,12 @@ def test_every_resolved_tally_has_its_jacobian():
     each other's, since they bin the same deposits)."""
     names = tf.transport.TALLY_NAMES
     spec = tf.TallySpec(names=names, nr=5, nz=5, na=4, dr=0.05, dz=0.05)
-    r = tf.trace(tf.Scene(tissue()), key=jax.random.key(2), photons=4000, tallies=spec, options=tf.TraceOptions(lanes=1024, path_stats=True))
+    r = tf.trace(tf.Scene(tissue()), key=jax.random.key(2), photons=4000, tallies=spec,
+                 options=tf.TraceOptions(lanes=1024, path_stats=True))
     ring, solid, projected = tf.transport._result.bin_measures(spec)
     measures = {"rd_r": ring, "tt_r": ring, "rd_a": solid, "tt_a": solid, "rd_ra": ring[:, None] * projected,
-                "tt_ra": ring[:, None] * projected, "a_z": np.full(5, 0.05), "a_rz": ring[:, None] * np.full((1, 5), 0.05), "a_layer": np.ones(2)}
+                "tt_ra": ring[:, None] * projected, "a_z": np.full(5, 0.05),
+                "a_rz": ring[:, None] * np.full((1, 5), 0.05), "a_layer": np.ones(2)}
     absorbed = r.jacobian("a_layer")
     for name in names:
         jac = r.jacobian(name)

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, assume, given, settings
 
 import tissuefit as tf
 
-from ._common import K, OPTS, scenes
+from ._common import OPTS, K, scenes
 
 TALLIES = tf.TallySpec(names=("rd_r", "a_z", "a_layer"), nz=8, nr=8, dz=0.05, dr=0.05)
 SEEDS = st.integers(0, 2**32 - 1)

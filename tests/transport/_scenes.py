@@ -1,7 +1,7 @@
 """Scenes with published reference values, shared by the transport tests.
 
-Sources: van de Hulst (1980) tables and Giovanelli (1955), as quoted by Wang, Jacques & Zheng
-(1995, MCML) and in ../shared/references/SOURCES.md.
+Sources: van de Hulst (1980) and Giovanelli (1955), as quoted by Wang, Jacques & Zheng (1995, MCML);
+the citations are in tissuefit/data/SOURCES.md.
 """
 
 import math

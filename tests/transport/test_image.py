@@ -5,7 +5,6 @@ import math
 
 import jax
 import numpy as np
-import pytest
 
 import tissuefit as tf
 from tissuefit.transport import PinholeCamera, trace_image

@@ -247,9 +247,10 @@ def test_shared_records_carry_band_powers(key):
 def test_no_fluorophore_means_no_conversion_code():
     """Skip what is not needed: the compiled step of a scene without fluorophores draws no
     conversion numbers and has no conversion loop; bands without light carry no weight."""
-    from tissuefit.transport._spectral import SpectralKernel, _Inputs, resolve_config
-    from tissuefit.transport import _spectral_state as S
     import jax.numpy as jnp
+
+    from tissuefit.transport import _spectral_state as S
+    from tissuefit.transport._spectral import SpectralKernel, _Inputs, resolve_config
 
     def step_jaxpr(scene):
         config = resolve_config(scene, tf.TraceOptions(lanes=32), tf.SpectralOptions(mode="per_band"), tf.RecordSpec())
@@ -375,7 +376,7 @@ def test_voxel_grid_properties_and_errors():
 @pytest.mark.parametrize("mode", ["per_band", "shared"])
 def test_records_path_statistics_reweight_to_a_retrace(key, mode):
     """Records carry (L, n) per medium since launch: reweighting every surface record by
-    (mus'/mus)^n exp(-(mut' - mut) L) (DESIGN.md §5) reproduces a re-trace at the new parameters."""
+    (mus'/mus)^n exp(-(mut' - mut) L) (docs/design.md §5) reproduces a re-trace at the new parameters."""
     bands = tf.BandGrid([500.0], 16.0)
 
     def scene(mua, mus):

@@ -1,5 +1,5 @@
 """Fit parameters: which leaves of a tissue a fit changes, and the unconstrained coordinates it
-moves them in (DESIGN.md §9): log for coefficients, a logistic squashing map between bounds (for g
+moves them in (docs/design.md §9): log for coefficients, a logistic squashing map between bounds (for g
 by default (0, 0.99)), or the identity."""
 
 from __future__ import annotations

@@ -87,18 +87,23 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         write_fit_plot as write_fit_plot,
         write_fit_report as write_fit_report,
     )
-    from ._measured import MeasuredStack as MeasuredStack, measurement as measurement, read_measured as read_measured, \
-        wavelength_from_name as wavelength_from_name
     from ._mci import read_mci as read_mci
     from ._mco import read_mco as read_mco, write_mco as write_mco
-    from ._report import (
-        file_stems as file_stems,
-        result_to_dict as result_to_dict,
-        spectral_result_to_dict as spectral_result_to_dict,
-        write_json as write_json,
-        write_run as write_run,
+    from ._measured import (
+        MeasuredStack as MeasuredStack,
+        measurement as measurement,
+        read_measured as read_measured,
+        wavelength_from_name as wavelength_from_name,
     )
     from ._plot import write_profile_plot as write_profile_plot, write_spectrum_plot as write_spectrum_plot
+    from ._preprocess import (
+        Registration as Registration,
+        calibrate as calibrate,
+        dead_bands as dead_bands,
+        mask_dead_bands as mask_dead_bands,
+        prepare_measured as prepare_measured,
+        register_bands as register_bands,
+    )
     from ._preview import (
         band_cmf as band_cmf,
         contact_sheet_png as contact_sheet_png,
@@ -108,16 +113,14 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         write_contact_sheet as write_contact_sheet,
         write_preview as write_preview,
     )
-    from ._preprocess import (
-        Registration as Registration,
-        calibrate as calibrate,
-        dead_bands as dead_bands,
-        mask_dead_bands as mask_dead_bands,
-        prepare_measured as prepare_measured,
-        register_bands as register_bands,
-    )
     from ._renderfile import render_stack as render_stack, write_render as write_render
-    from ._synthetic import synthetic_counts as synthetic_counts, synthetic_measurement as synthetic_measurement
+    from ._report import (
+        file_stems as file_stems,
+        result_to_dict as result_to_dict,
+        spectral_result_to_dict as spectral_result_to_dict,
+        write_json as write_json,
+        write_run as write_run,
+    )
     from ._run import MAX_PHOTONS as MAX_PHOTONS, RenderSpec as RenderSpec, Run as Run, SpectralRun as SpectralRun
     from ._scenefile import (
         load_runs as load_runs,
@@ -136,3 +139,4 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         read_stack_with_references as read_stack_with_references,
         write_stack as write_stack,
     )
+    from ._synthetic import synthetic_counts as synthetic_counts, synthetic_measurement as synthetic_measurement

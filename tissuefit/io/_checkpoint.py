@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..transport import TraceState
 from .._atomic import atomic_writer
+from ..transport import TraceState
 
 _FORMAT = "tissuefit-trace-state/1"
 

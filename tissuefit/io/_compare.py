@@ -163,7 +163,8 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
       band: compares shapes only) or "none"; `wavelength_tolerance_nm`: largest centre difference
       [nm] for two bands to match (centre and width; a measured band of unknown width matches by
       its centre). A measured band that matches none is resampled from the simulated bands
-      (`resample_weights`; a band at a simulated band's centre but narrower takes its share of it); one that cannot be (outside the simulated bands, width
+      (`resample_weights`; a band at a simulated band's centre but narrower takes its share of it);
+      one that cannot be (outside the simulated bands, width
       unknown) is listed in the report's `unmatched_bands` with the reason, and not compared.
     Raises `ValueError` for different image sizes, no band to compare, or a bad option.
     """

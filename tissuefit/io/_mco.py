@@ -13,9 +13,9 @@ import re
 
 import numpy as np
 
+from .._atomic import write_text_atomic
 from ..scene import PencilBeam
 from ..transport import TraceResult
-from .._atomic import write_text_atomic
 from ._mci import _FLOAT, _DataLines, _read_text, read_inparm
 from ._report import tissuefit_version
 from ._run import Run

@@ -12,11 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_writer
-
-from ._spectralfile import endoscope_to_dict, render_options_to_dict
 from ._report import file_stems, tissuefit_version
 from ._run import RenderSpec, SpectralRun
 from ._scenefile import scene_to_dict
+from ._spectralfile import endoscope_to_dict, render_options_to_dict
 from ._stack import RENDER_UNITS, SpectralStack, make_stack
 
 

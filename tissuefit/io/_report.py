@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..transport import SpectralResult, TraceResult
 from .._atomic import write_text_atomic
+from ..transport import SpectralResult, TraceResult
 from ._run import Run, SpectralRun
 from ._scenefile import scene_to_dict
 
@@ -166,7 +166,9 @@ def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: i
     record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
     dimensionless = (*SPECTRAL_TOTALS, "rd_fluor_total", "tt_fluor_total", *SPECTRAL_PER_BAND)
     record["units"] = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
-                       **({"resumed_photons": "-"} if "resumed_photons" in record else {}), "wavelength_nm": "nm", "width_nm": "nm", "records": "-", **{key: "-" for key in dimensionless}}
+                       **({"resumed_photons": "-"} if "resumed_photons" in record else {}),
+                       "wavelength_nm": "nm", "width_nm": "nm", "records": "-",
+                       **{key: "-" for key in dimensionless}}
     record["scene"] = scene_to_dict(run)
     record["input_files"] = [{"path": path, "sha256": digest} for path, digest in run.input_files]
     return record

@@ -16,7 +16,6 @@ from ..render import Endoscope, RenderOptions
 from ..scene import Scene, SpectralScene
 from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
 
-
 MAX_PHOTONS = 2**32 - 1
 """Largest photon count a run may ask for (photon indices are 32-bit)."""
 

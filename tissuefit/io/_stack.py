@@ -1,6 +1,7 @@
 """Multi-spectral stacks on disk: a [bands, H, W] TIFF and its JSON sidecar (data_spec/stack.md).
 
-One format for rendered (float32) and measured (float32 or integer counts; data_spec/measured.md) stacks. `write_stack` and `read_stack` share one validation
+One format for rendered (float32) and measured (float32 or integer counts; data_spec/measured.md) stacks.
+`write_stack` and `read_stack` share one validation
 (`check_stack`): the sidecar against `stack.schema.json`, then what a schema cannot say (one
 wavelength and one width per band, wavelengths strictly increasing, the image's shape, type and
 finite samples, a render's units and pixel size, the TIFF's SHA-256). Each problem names the file,

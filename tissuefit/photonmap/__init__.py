@@ -1,4 +1,4 @@
-"""Photon maps and density estimation (DESIGN.md §7).
+"""Photon maps and density estimation (docs/design.md §7).
 
 - `build_surface_map` / `build_volume_map`: sort photon records into a uniform grid, eagerly
   choosing the grid and a static capacity from the data; `update_map` re-sorts new records under

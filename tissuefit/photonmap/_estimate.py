@@ -36,9 +36,9 @@ from jax.custom_derivatives import SymbolicZero
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array, Float
 
+from .._checks import is_concrete
 from .._setup import float64
 from . import _args
-from .._checks import is_concrete
 from ._grid import argsort_keys, cell_coords, linear_id, tile_slices
 from ._kernels import Kernel, Phase, henyey_greenstein, kernel_weight
 from ._maps import SurfaceMap, VolumeMap

@@ -1,4 +1,4 @@
-"""Density-estimation kernels and phase functions (DESIGN.md §7; SOURCES.md "Photon maps").
+"""Density-estimation kernels and phase functions (docs/design.md §7; SOURCES.md "Photon maps").
 
 Every kernel is normalised over the disc (surface, 2-D) or ball (volume, 3-D) of radius r, with
 u = d / r the distance in units of the bandwidth:

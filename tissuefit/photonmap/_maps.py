@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._setup import float64
 from .._checks import bucket, check_positive_int, check_range, is_concrete
+from .._setup import float64
 from ._grid import Grid, argsort_keys, cell_coords, index_dtype, index_limit, linear_id, tile_candidates
 
 Precision = Literal["float32", "float64"]

@@ -1,4 +1,4 @@
-"""The endoscope head: a pinhole camera between two cone area lights, tilted by beta (DESIGN.md §8).
+"""The endoscope head: a pinhole camera between two cone area lights, tilted by beta (docs/design.md §8).
 
 Coordinates are the tracer's: tissue surface z = 0, depth z > 0 downward, the head above (z < 0),
 all lengths in cm. The head looks at `target` on the surface from `distance` along its axis

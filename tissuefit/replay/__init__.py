@@ -1,4 +1,4 @@
-"""Gradients and reweighting by path replay (likelihood ratio / perturbation Monte Carlo; DESIGN.md §5).
+"""Gradients and reweighting by path replay (likelihood ratio / perturbation Monte Carlo; docs/design.md §5).
 
 Trace once at the current parameters, keep each contribution's path statistics, and write the
 tallies, records and images as explicit JAX functions of the parameters, with every sampled

@@ -1,4 +1,4 @@
-"""Photon records as explicit functions of the tissue's parameters (path replay; DESIGN.md §5).
+"""Photon records as explicit functions of the tissue's parameters (path replay; docs/design.md §5).
 
 A record traced with parameters theta0 carries power P0 and its path statistics. With the sampled
 path held fixed (every distance and direction under stop_gradient), its power at parameters theta is
@@ -33,6 +33,7 @@ from jaxtyping import Array, Float
 from .._setup import float64
 from ..scene import SpectralTissue
 from ..transport import PhotonRecords, segment_log_ratio
+
 
 def _check_tissue(tissue, traced: SpectralTissue) -> None:
     if not isinstance(tissue, SpectralTissue):

@@ -16,8 +16,7 @@ from jaxtyping import Array
 
 from .._setup import float64
 from ..photonmap import estimate_surface, kernel_norm, update_map
-from ..render import RenderOptions
-from ..render import Shading, image_of, shade, surface_radiance
+from ..render import RenderOptions, Shading, image_of, shade, surface_radiance
 from ..scene import SpectralTissue
 from ._records import RecordReplay
 

@@ -20,8 +20,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._setup import float64
 from .._checks import is_concrete
+from .._setup import float64
 from ..scene import Scene, SpectralScene, SpectralTissue
 from ..transport import TALLY_NAMES, RecordSpec, SpectralOptions, TallySpec, TraceOptions, trace, trace_spectral
 from ._records import RecordReplay
@@ -77,7 +77,8 @@ def tallies(scene: Scene, *, key, photons: int, tallies: TallySpec = TallySpec(n
     """Trace `scene` and return its tallies as differentiable functions of `scene.tissue`'s mua, mus, g.
 
     Returns a dict: "rd", "tt", "a" (always), and every resolved tally in `tallies.names` (rd_r, rd_a,
-    rd_ra, tt_r, tt_a, tt_ra, a_z, a_rz, a_layer, in `TraceResult`'s units), each a JAX array equal to the traced tally whose derivative with respect to the layers' mua,
+    rd_ra, tt_r, tt_a, tt_ra, a_z, a_rz, a_layer, in `TraceResult`'s units), each a JAX array equal to the traced tally
+    whose derivative with respect to the layers' mua,
     mus, g [1/cm, 1/cm, -] is the likelihood-ratio (pMC) derivative, plus "result": the
     `TraceResult` (numpy; standard errors there). Keyword arguments go to `trace`.
     Works under `jax.grad`, `jax.jacfwd`, `jax.jacrev`, `jax.jvp` (not `jit`: it traces eagerly).

@@ -7,7 +7,7 @@ A layer's optics is a `LayerOptics`: a tuple of absorbers (their `mua` add up), 
 from the per-band properties to blood fraction, saturation, vessel radius, scattering amplitude
 and power, concentrations and so on. The band grid is static and passed in.
 
-Models (DESIGN.md §3, SOURCES.md "Tissue optics, 400–720 nm"):
+Models (docs/design.md §3, SOURCES.md "Tissue optics, 400–720 nm"):
 - `Blood`: oxy- and deoxy-hemoglobin from Prahl's table (tissuefit/data/hemoglobin_prahl.csv),
   with volume fraction, saturation and optional vessel packaging (Svaasand et al. 1995;
   van Veen et al. 2002).

@@ -8,7 +8,7 @@ regions (`Sphere`, `Box`) inside a layer with their own `LayerOptics`.
 The tracer sees *media*: the layers first (index l), then each region's (one for a sphere or a
 box, one per voxel for a `VoxelGrid`; `region_offsets`). `properties` gives mua, mus, g per
 medium and band, `conversion` the fluorescence conversion matrices per medium
-(DESIGN.md §6; the model is in `Fluorophore`).
+(docs/design.md §6; the model is in `Fluorophore`).
 """
 
 from __future__ import annotations

@@ -13,8 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..scene import Scene
-from . import _physics as phys
-from . import _rng
+from . import _physics as phys, _rng
 from ._config import TallySpec, TraceOptions
 
 ALIVE, ESC_TOP, ESC_BOTTOM, KILLED, IDLE = 0, 1, 2, 3, 4
@@ -407,7 +406,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
     absorbed = [name for name in (acc.jac or {}) if name.startswith("a_")]
     if absorbed:
         # The deposit w mua/mut at the j-th interaction, as a function of the parameters, is
-        # deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0 (DESIGN.md §5):
+        # deposit0 (mus/mus0)^(j-1) (mua/mua0) exp(-(mut - mut0) L) prod p_g/p_g0 (docs/design.md §5):
         # its derivatives need L (this hop included), the scatterings before it, their HG score,
         # and deposit/mua = w/mut (finite at mua = 0) for the mua of the layer it happens in.
         f64 = jnp.float64

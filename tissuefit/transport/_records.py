@@ -1,4 +1,4 @@
-"""Photon records: what the tracer hands to the photon maps (DESIGN.md §7).
+"""Photon records: what the tracer hands to the photon maps (docs/design.md §7).
 
 Two kinds, each in a fixed-size buffer whose capacity is chosen before `jit` (static):
 - surface records: one per photon leaving the tissue through the top face (z = 0), at the exit
@@ -20,7 +20,8 @@ arriving at interactions; emission powers sum to the emitted fluorescence per ba
 Path statistics: each record carries the path length `path` [cm] and the number of scattering
 interactions `hits` the photon made in each medium (layers first, then region media, as
 `SpectralTissue.properties()` orders them) since its launch or its last conversion: the current
-segment, with whose optical properties its power is an explicit function (DESIGN.md §5). Buffers fill in photon-index order within each device's photon range, so a run
+segment, with whose optical properties its power is an explicit function (docs/design.md §5).
+Buffers fill in photon-index order within each device's photon range, so a run
 is reproducible; when a buffer is full, further records are counted in `overflow` and dropped —
 never silently.
 """

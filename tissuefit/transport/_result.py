@@ -120,7 +120,7 @@ class TraceResult(eqx.Module):
 
 class PathStats(eqx.Module):
     """Weighted path statistics, normalised per launched photon: the likelihood-ratio (perturbation
-    Monte Carlo) derivatives of the tallies at the traced parameters (DESIGN.md §5).
+    Monte Carlo) derivatives of the tallies at the traced parameters (docs/design.md §5).
 
     Escaping light: `rd[0, l]` = sum over reflected photons of w * (path length in layer l) / N [cm];
     `rd[1, l]` = sum of w * (interactions in layer l) / N; `rd[2, l]` = sum of

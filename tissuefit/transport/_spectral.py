@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._setup import float64
 from .._checks import check_positive_int, check_range, is_concrete
+from .._setup import float64
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
 from ._nee import EmissionSites, ImageSpec, refill_sites
@@ -257,7 +257,8 @@ def trace_spectral(
     chunks = check_positive_int("chunks", chunks, high=photons)
     if not isinstance(scene, SpectralScene):
         raise TypeError(f"scene must be a tissuefit.SpectralScene, got {type(scene).__name__}")
-    for name, value, kind in (("options", options, TraceOptions), ("spectral", spectral, SpectralOptions), ("records", records, RecordSpec)):
+    checked = (("options", options, TraceOptions), ("spectral", spectral, SpectralOptions), ("records", records, RecordSpec))
+    for name, value, kind in checked:
         if not isinstance(value, kind):
             raise TypeError(f"{name} must be a tissuefit.{kind.__name__}, got {type(value).__name__}")
     if options.path_stats:

@@ -8,7 +8,7 @@ Two ways to carry the spectrum, chosen statically (`SpectralOptions.mode`):
 - "shared": a photon carries every active band along one path, sampled with the properties of a
   carrier band (drawn from the band powers at launch, from the emitted spectrum after a
   conversion). Each band's weight is an explicit function of the path (perturbation Monte Carlo,
-  DESIGN.md §5), evaluated only when it is needed (escape, records, conversion):
+  docs/design.md §5), evaluated only when it is needed (escape, records, conversion):
 
       w_k = W * s_k * prod_m (mus_mk / mus_mc)^(n_m) * exp(-(mut_mk - mut_mc) L_m)
 
@@ -37,13 +37,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _nee
-from . import _physics as phys
-from . import _rng
+from . import _nee, _physics as phys, _rng
 from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
-from ._spectral_state import _Acc, _Buffer, _Lanes, _Medium, SpectralConfig, boosted
+from ._spectral_state import SpectralConfig, _Acc, _Buffer, _Lanes, _Medium, boosted
 from ._spectral_weights import _convert_batch, _convert_batch_per_band, _flush_per_band, _sample_index, band_weights
-
 
 NUDGE = 1e-6
 """Depth [cm] past a layer face at which a photon's new medium (a region or the layer) is looked up."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ._spectral_state import _Acc, _Lanes, _Medium, SpectralConfig
+from ._spectral_state import SpectralConfig, _Acc, _Lanes, _Medium
 
 CONVERSION_BATCH = 16
 """Lanes whose conversions one pass of a step's conversion loop evaluates (gathered, so that a

@@ -26,8 +26,8 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array
 
-from .._setup import float64
 from .._checks import check_positive_int
+from .._setup import float64
 from ..scene import Scene
 from . import _rng
 from ._config import TallySpec, TraceOptions
