@@ -17,6 +17,8 @@ import sys
 import types
 from typing import TYPE_CHECKING
 
+from ._lazy import lazy_exports
+
 _SUBPACKAGES = ("cli", "fit", "io", "photonmap", "render", "replay", "scene", "transport")
 
 _EXPORTS = {
@@ -37,22 +39,7 @@ _EXPORTS = {
     **{name: ".fit" for name in ("FitConfig", "FitParameter", "FitResult", "Measurement")},
 }
 
-__all__ = sorted({*_EXPORTS, *_SUBPACKAGES})
-
-
-def __getattr__(name: str):
-    if name in _SUBPACKAGES:
-        return importlib.import_module(f".{name}", __name__)
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value  # later look-ups skip this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__, __all__ = lazy_exports(globals(), _EXPORTS, _SUBPACKAGES)
 
 
 class _Package(types.ModuleType):

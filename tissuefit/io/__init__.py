@@ -16,8 +16,9 @@ or scikit-image.
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
 
 _EXPORTS = {
     "atomic_writer": ".._atomic", "write_text_atomic": ".._atomic",
@@ -50,21 +51,7 @@ _EXPORTS = {
     "read_stack_with_references": "._stack", "write_stack": "._stack",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value  # later look-ups skip this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
-
+__getattr__, __dir__, __all__ = lazy_exports(globals(), _EXPORTS)
 
 if TYPE_CHECKING:  # what static tools see; at run time the names above load on first use
     from .._atomic import atomic_writer as atomic_writer, write_text_atomic as write_text_atomic
