@@ -34,13 +34,10 @@ ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "data_spec" / "examples"
 
 
-WARM = True  # False (--small): one cold call each, compilation included; a smoke test, not a measurement
-
-
-def timed(function, repeats: int = 2) -> float:
-    """Best wall time of `repeats` warm calls (one cold call first, not counted); with WARM False
-    the time of one cold call."""
-    if not WARM:
+def timed(function, repeats: int) -> float:
+    """Best wall time of `repeats` warm calls (one cold call first, not counted); with `repeats` 0
+    the time of one cold call, compilation included (a smoke test, not a measurement)."""
+    if repeats == 0:
         t0 = time.perf_counter()
         jax.block_until_ready(function())
         return time.perf_counter() - t0
@@ -53,20 +50,20 @@ def timed(function, repeats: int = 2) -> float:
     return best
 
 
-def tracer_rate(photons: int) -> float:
+def tracer_rate(photons: int, repeats: int) -> float:
     scene = tf.Scene(tf.paper_tissue())
-    seconds = timed(lambda: tf.trace(scene, key=jax.random.key(1), photons=photons).rd)
+    seconds = timed(lambda: tf.trace(scene, key=jax.random.key(1), photons=photons).rd, repeats)
     return photons / seconds / 1000.0
 
 
-def render_time(size: int, photons: int) -> float:
+def render_time(size: int, photons: int, repeats: int) -> float:
     run = io.read_scene(EXAMPLES / "paper_lesion_render.toml")
     endoscope = dataclasses.replace(run.render.endoscope, width=size, height=size)
     return timed(lambda: render(run.scene.tissue, endoscope, spectrum=run.scene.spectrum, photons=photons,
-                                key=jax.random.key(2), options=run.render.options).stack, repeats=1)
+                                key=jax.random.key(2), options=run.render.options).stack, min(repeats, 1))
 
 
-def fit_retrace(size: int, photons: int) -> float:
+def fit_retrace(size: int, photons: int, repeats: int) -> float:
     run = io.read_scene(EXAMPLES / "fit_demo.toml")
     endoscope = dataclasses.replace(run.render.endoscope, width=size, height=size)
     truth = render(run.scene.tissue, endoscope, spectrum=run.scene.spectrum, photons=photons,
@@ -80,7 +77,7 @@ def fit_retrace(size: int, photons: int) -> float:
         return fit(measured, tissue, parameters, endoscope=endoscope, spectrum=run.scene.spectrum,
                    options=run.render.options, config=config, key=jax.random.key(4), throw=False).values
 
-    return timed(once, repeats=1)
+    return timed(once, min(repeats, 1))
 
 
 def main() -> None:
@@ -88,18 +85,17 @@ def main() -> None:
     parser.add_argument("--small", action="store_true", help="CPU smoke-test sizes")
     parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
     args = parser.parse_args()
-    global WARM
-    WARM = not args.small
+    repeats = 0 if args.small else 2
     if args.small:
         sizes = {"trace": 100_000, "render": (24, 10_000), "fit": (8, 5_000)}
     else:
         sizes = {"trace": 10_000_000, "render": (256, 1_000_000), "fit": (128, 300_000)}
     m = machine()
-    rate = tracer_rate(sizes["trace"])
-    render_s = render_time(*sizes["render"])
-    fit_s = fit_retrace(*sizes["fit"])
+    rate = tracer_rate(sizes["trace"], repeats)
+    render_s = render_time(*sizes["render"], repeats)
+    fit_s = fit_retrace(*sizes["fit"], repeats)
     (size, photons), (fsize, fphotons) = sizes["render"], sizes["fit"]
-    warm = "warm" if WARM else "cold, compilation included"
+    warm = "warm" if repeats else "cold, compilation included"
     rows = [
         f"| paper tissue, float32, {sizes['trace']:,} photons | {rate:,.1f} photons/ms |",
         f"| paper lesion render, {size} x {size} x 21, {photons:,} photons (nee, {warm}) | {render_s:.2f} s |",
