@@ -92,7 +92,9 @@ def main() -> None:
         sizes = {"trace": 10_000_000, "render": (256, 1_000_000), "fit": (128, 300_000)}
     m = machine()
     rate = tracer_rate(sizes["trace"], repeats)
-    render_s = render_time(*sizes["render"], repeats)
+    print(f"tracer: {rate:,.1f} photons/ms", flush=True)  # each number as soon as it is known: a run
+    render_s = render_time(*sizes["render"], repeats)  # stopped by its time limit keeps what it measured
+    print(f"render: {render_s:.2f} s", flush=True)
     fit_s = fit_retrace(*sizes["fit"], repeats)
     (size, photons), (fsize, fphotons) = sizes["render"], sizes["fit"]
     warm = "warm" if repeats else "cold, compilation included"

@@ -54,7 +54,7 @@ ENDOSCOPE_KEYS = {"beta_deg": "beta_deg", "distance_cm": "distance", "separation
                   "light_radius_cm": "light_radius", "cone_deg": "cone_deg", "fov_deg": "fov_deg",
                   "width": "width", "height": "height", "target_cm": "target"}
 """`[endoscope]` key -> `Endoscope` field."""
-RENDER_OPTION_KEYS = {"estimator": "estimator", "batches": "batches", "splits": "splits", "site_rate": "site_rate",
+RENDER_OPTION_KEYS = {"estimator": "estimator", "batches": "batches", "splits": "splits", "site_rate": "site_rate", "lobe": "lobe",
                       "smoothing": "smoothing", "smoothing_px": "smoothing_px",
                       "steps": "steps", "step_length_cm": "step_length", "kernel": "kernel",
                       "surface_radius_cm": "surface_radius", "volume_radius_cm": "volume_radius", "k": "k",

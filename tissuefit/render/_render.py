@@ -222,7 +222,7 @@ def render(
     if setup.options.estimator == "nee":
         image = trace_image(scene, setup.endoscope.camera(setup.options.batches), key=key, photons=kept,
                             options=setup.trace_options, spectral=setup.spectral, splits=setup.options.splits,
-                            site_rate=setup.options.site_rate, progress=progress, tangents=tangents)
+                            site_rate=setup.options.site_rate, lobe=setup.options.lobe, progress=progress, tangents=tangents)
         timings["trace"] = time.perf_counter() - t
         return _finish_nee(setup, view, image, kept, fraction, timings, keep_batches)
     traced = _trace_records(setup, scene, key, kept, chunks, progress, path_statistics)

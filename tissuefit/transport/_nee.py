@@ -12,6 +12,26 @@ the expected fluorescence emitted there, isotropically: P[m, i, k] is the weight
 to band k per unit weight at an interaction (`SpectralTissue.conversion`), so summing it over every
 interaction is what the sampled conversions would emit on average, without the sampling.
 
+The camera lobe (`ImageSpec.lobe`). Under a forward-peaked phase function (tissue: g ~ 0.9)
+p_g(w_in . w_out) spans a factor ~200 across directions, so a pixel's sum is ruled by the rare
+photons that happen to fly towards the camera, and its variance is many times that of isotropic
+scattering. At every scattering at P (arriving along w_P) the photon's next vertex A is sampled
+along w ~ p_g(w_P . w); a second vertex A' is sampled along w' ~ q(w') = p_g(w' . c_P), the same
+Henyey–Greenstein lobe around c_P, the connection's direction at P, at the same free-path
+density (exp(-mut s)). Both estimate the light scattered towards the camera at the next vertex;
+they are combined by the balance heuristic of multiple importance sampling (Veach 1997): A's
+scattered light is weighted by p_g / (p_g + q), and A' scores
+
+    W p_g(w_P . w') / (p_g(w_P . w') + q(w')) (mus / mut) p_g(w' . c_A') e^(-tau) T G / Omega,
+
+where W is the weight leaving P. When w' lies near c the ratio p_g(w' . c_A') / q(w') is near 1:
+the connection's peak cancels against the density that sampled it. Only vertices reached from P
+without meeting a layer face or a region boundary take part (A' is dropped otherwise, and A then
+keeps its full weight), so that both strategies cover the same paths. An emission site is
+such a P too, its isotropic emission (1 / (4 pi)) in place of p_g(w_P . w). The weights are fixed at the
+trace (derivatives by path replay are unchanged); p_g(w_P . w') is an explicit factor of A's
+value, differentiated in g. Fluorescence emission (isotropic) is not weighted.
+
 Fluorescence that scatters before it escapes needs traced fluorescence photons. With a camera the
 tracer samples no conversion (the photon always scatters on with w mus/mut, its weight unaffected
 by fluorescence). Instead each interaction is an emission site with probability
@@ -32,6 +52,7 @@ which a sampled conversion would end.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -41,8 +62,8 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import check_positive_int, check_range
 from ..scene import AbstractSource
-from . import _rng
-from ._camera import PinholeCamera, connect, hg_intensity
+from . import _physics as phys, _rng
+from ._camera import Connection, PinholeCamera, connect, hg_intensity
 from ._lanes import ALIVE, IDLE, KILLED, _expand
 from ._records import segment_log_ratio
 from ._spectral_state import SpectralConfig, _Sites
@@ -59,6 +80,8 @@ class ImageSpec(eqx.Module):
     - `tangents`: K >= 0 directions in the tissue's coefficients along which the image is
       differentiated as it is scored (`trace_spectral(..., tangents=...)`; module docstring).
     - `from_sites`: the photons start at `EmissionSites` (set by `trace_spectral`).
+    - `lobe`: score the camera lobe (module docstring) as well: lower variance where the phase
+      function is forward-peaked, one more connection per interaction.
     """
 
     camera: PinholeCamera = eqx.field(static=True)
@@ -66,6 +89,7 @@ class ImageSpec(eqx.Module):
     site_rate: float = eqx.field(static=True, default=0.1)
     tangents: int = eqx.field(static=True, default=0)
     from_sites: bool = eqx.field(static=True, default=False)
+    lobe: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not isinstance(self.camera, PinholeCamera):
@@ -136,29 +160,56 @@ def _active_props(mua, mus, g, conv, config: SpectralConfig):
     return table(mua), table(mus), table(g), c
 
 
-def _values(props, spectrum_change, fixed, config: SpectralConfig):
+class _Vertex(NamedTuple):
+    """What `_values` needs of the points a step scores (lanes), fixed at the trace.
+
+    `w0` [lanes, slots] the traced band weights arriving; `path`, `hits`, `score` [lanes, media]
+    the path statistics since launch or the emission site (`path` None without tangents); `med`
+    the medium; `cos` the cosine between the arriving direction and the connection; `lengths`,
+    `factor` the connection's (`Connection`); `mis` [lanes] the weight of the scattered light (the
+    lane's `mis`: module docstring), or None for 1; `pre` (cos_p, density) for a vertex sampled
+    towards the camera: its scattered light is weighted by p_g(cos_p) / density instead (cos_p None:
+    by 1 / (4 pi density), the vertex following an isotropic emission)."""
+
+    w0: Array
+    path: Array | None
+    hits: Array | None
+    score: Array | None
+    med: Array
+    cos: Array
+    lengths: Array
+    factor: Array
+    mis: Array | None = None
+    pre: tuple | None = None
+
+
+def _values(props, spectrum_change, v: _Vertex, config: SpectralConfig):
     """The light one interaction per lane scores into the camera, per band, and the fluorescence it
     emits (module docstring), as functions of the media's coefficients `props` (mua, mus, g [media,
     slots], conv [media, slots, slots] or None) and of `spectrum_change` [lanes, slots], the relative
     change of the photon's spectrum (0 at the trace): at the traced coefficients both equal the traced
     values, and their derivatives there are the likelihood-ratio derivatives (jvp along tangents).
-
-    `fixed`: the traced weights w0 [lanes, slots] arriving, the path statistics since launch or the
-    emission site (path, hits, score [lanes, media]), the medium, the cosine to the camera, and the
-    connection (lengths [lanes, media], factor [lanes]). Returns (value [lanes, slots], emitted E)."""
-    w0, path, hits, score, med, cos, lengths, factor = fixed
+    Returns (value [lanes, slots], emitted E or None)."""
     mua, mus, g, conv = props
-    if path is not None:
+    med = v.med
+    if v.path is not None:
         props0 = jax.tree.map(jax.lax.stop_gradient, (mua, mus, g))
-        w = w0 * jnp.exp(segment_log_ratio(path, hits, score, (mua, mus, g), props0)) * (1.0 + spectrum_change)
+        w = v.w0 * jnp.exp(segment_log_ratio(v.path, v.hits, v.score, (mua, mus, g), props0)) * (1.0 + spectrum_change)
     else:
-        w = w0
+        w = v.w0
     mut = mua + mus
     # The interaction density mut at the vertex is the sampling's (held at the trace): scattering
     # there is mus / mut0 and conversion P mut / mut0 (P is per interaction: mu_conv / mut).
     mut0 = jax.lax.stop_gradient(mut)
     inverse0 = jnp.where(mut0 > 0, 1.0 / jnp.where(mut0 > 0, mut0, 1.0), 0.0)
-    intensity = w * mus[med] * inverse0[med] * hg_intensity(g[med], cos[:, None])
+    phase = hg_intensity(g[med], v.cos[:, None])
+    if v.pre is not None:
+        cos_p, density = v.pre
+        before = 1.0 / (4.0 * math.pi) if cos_p is None else hg_intensity(g[med], cos_p[:, None])
+        phase = phase * before / density[:, None]
+    elif v.mis is not None:
+        phase = phase * v.mis[:, None]
+    intensity = w * mus[med] * inverse0[med] * phase
     emitted = None
     if conv is not None:
         conv = conv * (mut * inverse0)[:, :, None]
@@ -166,38 +217,36 @@ def _values(props, spectrum_change, fixed, config: SpectralConfig):
         for m in range(1, config.num_media):
             emitted = jnp.where((med == m)[:, None], w @ conv[m], emitted)
         intensity = intensity + emitted * (1.0 / (4.0 * math.pi))
-    value = intensity * jnp.exp(-(lengths @ mut)) * factor[:, None]
+    value = intensity * jnp.exp(-(v.lengths @ mut)) * v.factor[:, None]
     return value, emitted
 
 
-def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y, z_abs, med, path_in, xi):
-    """Score the camera's next-event estimate of this step's interactions into `acc.image` (and,
-    with tangents, its derivatives), and sample emission sites into `acc.sites` (fluorescent
-    scenes). `lanes` is the photon arriving (weight, spectrum, direction, hits and score before this
-    interaction); `path_in` its path lengths with this hop; `xi` a uniform per lane for the site
-    decision. Returns the accumulators."""
-    cam = config.image.camera
-    dtype = x.dtype
-    conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
+def _arriving(lanes, w, path, hits, medium, config: SpectralConfig, mask):
+    """The traced band weights [lanes, slots] of lanes arriving with carrier weight `w` and path
+    statistics (path, hits); 0 outside `mask`."""
     if config.shared:
-        w0 = band_weights(lanes.w, lanes.spectrum, path_in, lanes.hits, lanes.band, medium)
+        w0 = band_weights(w, lanes.spectrum, path, hits, lanes.band, medium)
     else:
-        w0 = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=dtype) * lanes.w[:, None]
-    w0 = jnp.where(interact[:, None], w0, 0.0)
-    cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
+        w0 = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=w.dtype) * w[:, None]
+    return jnp.where(mask[:, None], w0, 0.0)
+
+
+def _deposit(acc, lanes, medium, config: SpectralConfig, vertex: _Vertex, conn: Connection, mask, fluorescence: bool):
+    """Add the vertices' values (and, with tangents, their derivatives) into `acc.image`.
+    Returns (acc, emitted, demitted): the expected emission, when `fluorescence`."""
+    cam = config.image.camera
     k = config.tangents
-    fixed = (w0, path_in if k else None, lanes.hits, lanes.score, med, cos, conn.lengths, conn.factor)
-    props = _active_props(medium.mua, medium.mus, medium.g, medium.conv if config.fluorescent else None, config)
-    no_change = jnp.zeros_like(w0)
+    props = _active_props(medium.mua, medium.mus, medium.g, medium.conv if fluorescence else None, config)
+    no_change = jnp.zeros_like(vertex.w0)
 
     def values(p, change):
-        return _values(p, change, fixed, config)
+        return _values(p, change, vertex, config)
 
     if k:
         (dmua, dmus, dg), dconv = medium.dprops
-        tangents = jax.vmap(lambda a, b, c, d: _active_props(a, b, c, d if config.fluorescent else None, config))(
+        tangents = jax.vmap(lambda a, b, c, d: _active_props(a, b, c, d if fluorescence else None, config))(
             dmua, dmus, dg, dconv)
-        change = jnp.zeros((k,) + w0.shape, dtype) if lanes.dlog_s is None else jnp.moveaxis(lanes.dlog_s, -1, 0)
+        change = jnp.zeros((k,) + vertex.w0.shape, vertex.w0.dtype) if lanes.dlog_s is None else jnp.moveaxis(lanes.dlog_s, -1, 0)
         (value, emitted), (dvalue, demitted) = jax.vmap(
             lambda t, c: jax.jvp(values, (props, no_change), (t, c)), out_axes=(None, 0))(tangents, change)
         row_values = jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1)
@@ -206,11 +255,72 @@ def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y,
         demitted = None
         row_values = value
     batch = (lanes.origin % cam.batches).astype(jnp.int32)
-    row = jnp.where(interact & conn.valid, batch * cam.pixels + conn.pixel, cam.batches * cam.pixels)
-    upd = {"image": acc.image.at[row].add(row_values.astype(jnp.float64), mode="drop")}
+    row = jnp.where(mask & conn.valid, batch * cam.pixels + conn.pixel, cam.batches * cam.pixels)
+    return acc._replace(image=acc.image.at[row].add(row_values.astype(jnp.float64), mode="drop")), emitted, demitted
+
+
+def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y, z_abs, med, path_in, xi):
+    """Score the camera's next-event estimate of this step's interactions into `acc.image` (and,
+    with tangents, its derivatives), and sample emission sites into `acc.sites` (fluorescent
+    scenes). `lanes` is the photon arriving (weight, spectrum, direction, hits and score before this
+    interaction); `path_in` its path lengths with this hop; `xi` a uniform per lane for the site
+    decision. Returns (acc, the connection's direction at the points: the camera lobe's axis)."""
+    cam = config.image.camera
+    conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
+    w0 = _arriving(lanes, lanes.w, path_in, lanes.hits, medium, config, interact)
+    cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
+    vertex = _Vertex(w0=w0, path=path_in if config.tangents else None, hits=lanes.hits, score=lanes.score, med=med,
+                     cos=cos, lengths=conn.lengths, factor=conn.factor, mis=lanes.mis)
+    acc, emitted, demitted = _deposit(acc, lanes, medium, config, vertex, conn, interact, config.fluorescent)
     if config.sites:
-        upd.update(_record_sites(acc, lanes, medium, config, w0, emitted, demitted, interact, x, y, z_abs, med, xi))
-    return acc._replace(**upd)
+        acc = acc._replace(**_record_sites(acc, lanes, medium, config, w0, emitted, demitted, interact, x, y, z_abs, med, xi))
+    return acc, conn.direction
+
+
+def score_lobe(acc, lanes, medium, tissue, config: SpectralConfig, *, scatter, x, y, z, z_abs, med, g, mut, w, path, hits,
+               axis, new_dir, xi, emission=False):
+    """The camera lobe (module docstring): for lanes that `scatter` at (x, y, z) (z below the layer's
+    top face, z_abs absolute) in medium `med`, with Henyey–Greenstein `g` and interaction
+    coefficient `mut` of the carrier, leaving with weight `w` and path statistics (path, hits), in
+    the sampled direction `new_dir` (the lanes' direction arriving is `lanes.ux, uy, uz`): score a
+    next vertex sampled around `axis` (the connection's direction here), and return (acc, mis), the
+    weight of the scattered light at the next vertex the photon itself reaches, if it reaches it
+    without meeting a face or a region boundary. `xi`: three uniforms per lane. With `emission`
+    the lanes start there with an isotropic direction (an emission site) instead of scattering."""
+    dtype = x.dtype
+    ax, ay, az = axis
+    iso = jnp.full_like(x, 1.0 / (4.0 * math.pi))
+    p_new = iso if emission else hg_intensity(g, lanes.ux * new_dir[0] + lanes.uy * new_dir[1] + lanes.uz * new_dir[2])
+    q_new = hg_intensity(g, ax * new_dir[0] + ay * new_dir[1] + az * new_dir[2])
+    mis = p_new / (p_new + q_new)
+    # the next vertex, drawn around the axis and at the photon's own free-path density
+    cos_v = phys.sample_hg_cos(g, xi[0])
+    vx, vy, vz = phys.spin(ax, ay, az, cos_v, xi[1])
+    s = -jnp.log(xi[2]) / jnp.where(mut > 0, mut, 1.0)
+    cos_p = lanes.ux * vx + lanes.uy * vy + lanes.uz * vz
+    density = (iso if emission else hg_intensity(g, cos_p)) + hg_intensity(g, cos_v)
+    zv = z + vz * s
+    direct = scatter & (mut > 0) & (zv > 0) & (zv < medium.thickness[lanes.layer])
+    if tissue.regions:
+        p = jnp.stack([x, y, z_abs])
+        u = jnp.stack([vx, vy, vz])
+        for region in tissue.regions:
+            t_in, t_out = region.distances(p, u)
+            crosses = ((t_in > 0) & (t_in < s)) | ((t_out > 0) & (t_out < s))
+            direct = direct & ~crosses
+    path_v = None
+    if path is not None:
+        onehot = (med[:, None] == jnp.arange(config.num_media, dtype=jnp.int32)[None, :]).astype(dtype)
+        path_v = path + onehot * s[:, None]
+    xv, yv, zv_abs = x + vx * s, y + vy * s, z_abs + vz * s
+    conn = connect(xv, yv, zv_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, config.image.camera,
+                   medium.solid_angle)
+    w0 = _arriving(lanes, w, path_v, hits, medium, config, direct)
+    cos = vx * conn.direction[0] + vy * conn.direction[1] + vz * conn.direction[2]
+    vertex = _Vertex(w0=w0, path=path_v if config.tangents else None, hits=hits, score=lanes.score, med=med, cos=cos,
+                     lengths=conn.lengths, factor=conn.factor, pre=(None if emission else cos_p, density))
+    acc, _, _ = _deposit(acc, lanes, medium, config, vertex, conn, direct, False)
+    return acc, mis
 
 
 def _record_sites(acc, lanes, medium, config: SpectralConfig, w, emitted, demitted, interact, x, y, z_abs, med, xi) -> dict:
@@ -256,10 +366,12 @@ def _append_sites(buf: _Sites, mask, **rows) -> _Sites:
     return buf._replace(count=buf.count + fits, overflow=buf.overflow + added - fits, **new)
 
 
-def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: SpectralConfig):
+def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: SpectralConfig, tissue):
     """Launch photons next_pid, ... (below `end`) from emission sites into lanes that are not alive:
     photon i from site i // splits, an isotropic direction, 1/splits of the site's power, a carrier
-    band (shared) or its band (per band) drawn from the site's spectrum; fluorescence light."""
+    band (shared) or its band (per band) drawn from the site's spectrum; fluorescence light. With
+    the camera lobe, the emission is its first strategy and a vertex around the camera's direction
+    is scored (`score_lobe`)."""
     dtype = lanes.x.dtype
     free = lanes.status != ALIVE
     new_pid = acc.next_pid + jnp.cumsum(free.astype(jnp.int64)) - 1
@@ -300,8 +412,10 @@ def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: S
         sleft=zeros, layer=layer, medium=sites.medium[site].astype(jnp.int32), band=band.astype(jnp.int32),
         converted=jnp.ones(pos.shape[:1], bool), status=jnp.where(total > 0, ALIVE, KILLED).astype(jnp.int32),
         pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(pos.shape[:1], jnp.int32),
-        origin=sites.origin[site].astype(jnp.int64), dlog_s=dlog_s,
+        origin=sites.origin[site].astype(jnp.int64), dlog_s=dlog_s, mis=jnp.ones_like(zeros),
     )
+    if config.image.lobe:
+        new, acc = _lobe_from_sites(new, acc, medium, config, tissue, start & (total > 0))
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
     lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))
     emitted = jnp.where(start[:, None], power, 0.0).astype(jnp.float64).sum(0)
@@ -309,3 +423,22 @@ def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: S
     acc = acc._replace(next_pid=jnp.minimum(acc.next_pid + free.astype(jnp.int64).sum(), end),
                        flux=acc.flux.at[act, 1].add(emitted))
     return lanes, acc
+
+
+def _lobe_from_sites(new, acc, medium, config: SpectralConfig, tissue, start):
+    """The camera lobe at emission sites: the photons `new` (just started) emit isotropically; score
+    the vertex drawn around the camera's direction and set their `mis` (`score_lobe`)."""
+    z_abs = new.z + medium.z0[new.layer]
+    conn = connect(new.x, new.y, z_abs, new.layer, tissue, medium.n_ext, medium.z0, medium.thickness, config.image.camera,
+                   medium.solid_angle)
+    carrier = jnp.asarray(config.active, jnp.int32)[new.band] if config.shared else new.band
+    flat = new.medium * config.num_bands + carrier
+    xi = []
+    rng = new.rng
+    for _ in range(3):
+        u, rng = _rng.next_uniform(rng, new.x.dtype)
+        xi.append(u)
+    acc, mis = score_lobe(acc, new, medium, tissue, config, scatter=start, x=new.x, y=new.y, z=new.z, z_abs=z_abs,
+                          med=new.medium, g=medium.g[flat], mut=medium.mua[flat] + medium.mus[flat], w=new.w, path=new.path,
+                          hits=new.hits, axis=conn.direction, new_dir=(new.ux, new.uy, new.uz), xi=xi, emission=True)
+    return new._replace(mis=mis, rng=rng), acc

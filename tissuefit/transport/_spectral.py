@@ -212,7 +212,7 @@ class SpectralKernel(eqx.Module):
 
     def refill(self, lanes, acc, medium, inputs, words, end):
         if self.config.launch_sites:
-            return refill_sites(lanes, acc, medium, inputs.scene.source, words, end, self.config)
+            return refill_sites(lanes, acc, medium, inputs.scene.source, words, end, self.config, inputs.scene.tissue)
         return refill(lanes, acc, medium, inputs.scene, words, end, self.config)
 
     def step(self, lanes, acc, medium, inputs):

@@ -132,7 +132,7 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         sleft=zeros, layer=layer, medium=med.astype(jnp.int32),
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
-        origin=None if lanes.origin is None else pid,
+        origin=None if lanes.origin is None else pid, mis=None if lanes.mis is None else jnp.ones_like(x),
     )
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
     lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))
@@ -170,6 +170,12 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     if config.fluorescent:
         xi_d, rng = _rng.next_uniform(rng, dtype)
         xi_e, rng = _rng.next_uniform(rng, dtype)
+    lobe = config.image is not None and config.image.lobe
+    if lobe:  # the camera lobe's vertex (`_nee.score_lobe`)
+        xi_lobe = []
+        for _ in range(3):
+            xi, rng = _rng.next_uniform(rng, dtype)
+            xi_lobe.append(xi)
 
     # hop: a free path (or the carried rest of one) against the layer's faces and region boundaries
     turbid, safe_mut, s, face, db = free_path(lanes, medium, mut_c, xi_step)
@@ -250,7 +256,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     w_new = jnp.where(interact, keep, w)
     if config.image is not None:
         here_z = _pick(medium.z0, layer) + z
-        acc = _nee.score(acc, lanes._replace(uz=uz), medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z,
+        acc, to_camera = _nee.score(acc, lanes._replace(uz=uz), medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z,
                          med=med, path_in=path_in, xi=xi_d if config.fluorescent else xi_c)
     if config.fluorescent and shared and not config.sites:
         state = (convert, spectrum, new_band, w_new, path, hits, acc.flux, lanes.exc0)
@@ -278,6 +284,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
 
     ix, iy, iz = _isotropic(xi_a, xi_b)
     cos_s = phys.sample_hg_cos(g_c, xi_a)
+    sx, sy, sz = phys.spin(lanes.ux, lanes.uy, uz, cos_s, xi_b)
     replay = {}
     if config.scores:
         # HG score of this scattering: the g factor of the replayed weight (replay, image tangents)
@@ -300,7 +307,12 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
                 replay["band0"] = jnp.where(convert, lanes.band, lanes.band0)
             score = jnp.where(c2, 0.0, score)
         replay["score"] = score
-    sx, sy, sz = phys.spin(lanes.ux, lanes.uy, uz, cos_s, xi_b)
+    mis = lanes.mis
+    if lobe:
+        acc, mis = _nee.score_lobe(
+            acc, lanes._replace(uz=uz), medium, tissue, config, scatter=interact & ~convert, x=x, y=y, z=z, z_abs=here_z,
+            med=med, g=g_c, mut=mut_c, w=keep, path=path, hits=hits, axis=to_camera, new_dir=(sx, sy, sz), xi=xi_lobe)
+        mis = jnp.where(interact, mis, jnp.where(hit, 1.0, lanes.mis))
     # a face reflects or refracts; a region boundary leaves the direction as it is
     ux = jnp.where(hit_face, bx, jnp.where(hit_reg, lanes.ux, jnp.where(convert, ix, sx)))
     uy = jnp.where(hit_face, by, jnp.where(hit_reg, lanes.uy, jnp.where(convert, iy, sy)))
@@ -330,7 +342,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         sleft=sleft,
         layer=jnp.where(hit_face, b_layer, layer).astype(jnp.int32), medium=new_med.astype(jnp.int32),
         band=new_band.astype(jnp.int32), converted=converted, status=status.astype(jnp.int32), rng=rng,
-        heat=seg_heat, roulette=seg_roulette, steps=lanes.steps + 1,
+        heat=seg_heat, roulette=seg_roulette, steps=lanes.steps + 1, mis=mis,
     )
     new = lanes._replace(**upd)
     out_lanes = jax.tree.map(lambda a, b: jnp.where(_expand(live, a), a, b), new, lanes)
