@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_positive_int, check_range, is_concrete
+from .._checks import check_positive_int, check_range, checked_parameters, is_concrete
 from .._setup import float64
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
@@ -206,6 +206,11 @@ class SpectralKernel(eqx.Module):
     @property
     def options(self) -> TraceOptions:
         return self.config.options
+
+    def checked(self, inputs):
+        """`inputs` with the tissue's parameters checked (not the tangents: directions may be negative)."""
+        tissue = checked_parameters(inputs.scene.tissue, "scene.tissue")
+        return eqx.tree_at(lambda i: i.scene.tissue, inputs, tissue)
 
     def medium(self, inputs):
         return medium_arrays(inputs.scene, self.config, jnp.dtype(self.options.precision), inputs.tangents)
