@@ -190,3 +190,21 @@ def test_fit_model_refuses_a_step_out_of_range(key):
                                observation_filter=None, options=rd.RenderOptions(), batches=2, binning=1)
     with raises("tissue.layers[0].scattering.g = 1.3 is out of range; allowed (-1, 1)"):
         model.sample(jnp.asarray([1.3]), key=key, photons=100)
+
+
+# ---------------------------------------------------------------------------------------------
+# one outcome type: trace, spectral trace, render and fit results report a `tissuefit.Outcome`
+
+
+def test_results_report_one_outcome_enumeration(key):
+    from tissuefit.fit import FitResult
+    from tissuefit.render import RenderResult
+
+    short = tf.TraceOptions(lanes=64, max_steps=4)
+    assert tf.trace(tf.Scene(LAYERED), key=key, photons=500).outcome is tf.Outcome.SUCCESSFUL
+    assert tf.trace(tf.Scene(LAYERED), key=key, photons=500, options=short).outcome is tf.Outcome.BUDGET_EXHAUSTED
+    spectral_result = tf.trace_spectral(tf.SpectralScene(spectral()), key=key, photons=200, options=short)
+    assert spectral_result.outcome is tf.Outcome.BUDGET_EXHAUSTED
+    assert isinstance(RenderResult.outcome, property)
+    for cls in (tf.TraceResult, tf.SpectralResult, RenderResult, FitResult):
+        assert not {"budget_exhausted", "converged", "reason"} & set(dir(cls)), cls

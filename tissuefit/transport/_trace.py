@@ -27,6 +27,7 @@ from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array
 
 from .._checks import check_positive_int, checked_parameters
+from .._outcome import Outcome
 from .._setup import float64
 from ..scene import Scene
 from . import _rng
@@ -320,7 +321,7 @@ def _normalise(acc: _Acc, photons: int, scene: Scene, tallies: TallySpec, option
         photons=photons, tallies=tallies, options=options,
         rsp=a.rsp / n, rd=mean[0], a=mean[1], tt=mean[2],
         rd_stderr=stderr[0], a_stderr=stderr[1], tt_stderr=stderr[2],
-        roulette=mean[3], roulette_stderr=stderr[3], steps=a.steps, budget_exhausted=exhausted,
+        roulette=mean[3], roulette_stderr=stderr[3], steps=a.steps, outcome=Outcome.BUDGET_EXHAUSTED if exhausted else Outcome.SUCCESSFUL,
         path_stats=path_stats,
         **{k: v for k, v in out.items()},
     )
