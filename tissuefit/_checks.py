@@ -1,4 +1,5 @@
-"""Input checks run before anything is traced.
+"""Input checks: eager ones run before anything is traced (`check_range`), and one table of
+parameter ranges (`PARAMETER_RANGES`) that the traced entry points apply (`checked_parameters`).
 
 Every message names the field, the offending value, the unit and the allowed range, so a user can
 fix a scene file without reading our source.
@@ -168,7 +169,8 @@ PARAMETER_RANGES: dict[str, Range] = {
     "quantum_yield": _PROBABILITY,
 }
 """The allowed range of every parameter a tissue holds, by field name (the scene modules' eager
-`check_range` calls use the same intervals). `checked_parameters` applies them to traced values."""
+`check_range` calls use the same intervals; only the last layer may be semi-infinite there).
+`checked_parameters` applies them at the entry points, to concrete and traced values alike."""
 
 _UNITS = {("TabulatedAbsorber", "concentration"): "M"}
 _PER_ELEMENT = 256  # arrays larger than this get one message for the whole field, not one per element
@@ -196,10 +198,12 @@ def checked_parameters(tree, name: str, *, on_error: str = "raise"):
 
     Concrete values are checked at once (`check_range`: `ValueError` naming field, value and range).
     Traced values (inside `jit`, `vmap`, `grad`) go through one `eqx.branched_error_if` for the whole
-    tree: at run time, if any element lies outside its range, an `EqxRuntimeError` names the first
-    such field and element and its allowed range and unit (the value itself is not known when the
-    message is built). Derivatives pass through unchanged; call it once per entry point on the
-    parameters, never inside a photon loop. `name` prefixes the field names (e.g. "scene").
+    tree: at run time, if any element lies outside its range, an error (`eqx.EquinoxRuntimeError`;
+    under `jax.jit` JAX's runtime error carrying the same text) names the offending field and
+    element and its allowed range and unit (the value itself is not known when the message is
+    built). JAX dispatches asynchronously: under `jit` the error surfaces when the result is read.
+    Derivatives pass through unchanged; call it once per entry point on the parameters, never
+    inside a photon loop. `name` prefixes the field names (e.g. "scene").
     `on_error`: as `eqx.error_if`'s ("nan" turns the checked values to NaN instead of raising).
     """
     flat, treedef = jax.tree_util.tree_flatten_with_path(tree)
