@@ -84,7 +84,7 @@ def result_arrays(result) -> dict[str, np.ndarray]:
     out = {}
     for field in dataclasses.fields(result):
         value = getattr(result, field.name)
-        if value is None or field.name in ("tallies", "options", "photons"):
+        if value is None or field.name in ("tallies", "options", "photons", "outcome"):
             continue
         if field.name == "path_stats":
             out.update({f"path_stats.{k}": np.asarray(v) for k, v in (("rd", value.rd), ("tt", value.tt))})
