@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tissuefit import TraceResult, cli, io
+from tissuefit import Outcome, TraceResult, cli, io
 from tissuefit.cli import _render, _simulate
 from tissuefit.io import read_mco
 
@@ -47,7 +47,7 @@ class FakeTrace:
             photons=photons, tallies=tallies, options=options,
             rsp=scalar(0.02), rd=scalar(0.25), a=scalar(0.63), tt=scalar(0.1),
             rd_stderr=scalar(0.001), a_stderr=scalar(0.002), tt_stderr=scalar(0.0005),
-            steps=jnp.asarray(1000), budget_exhausted=jnp.asarray(False), **arrays,
+            steps=jnp.asarray(1000), outcome=Outcome.SUCCESSFUL, **arrays,
         )
 
 

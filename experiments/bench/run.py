@@ -317,7 +317,7 @@ def run_case(case: Case, case_i: int, ref: dict, photon_counts, seeds_for, loads
                 runs.append({"case": case.name, "setting": st.label, "precision": st.precision,
                              "launch": st.launch, "photons": n, "rep": rep, "seed": seed, "wall_s": wall,
                              "cpu_s": cpu, "rd": float(res.rd), "rd_stderr": float(res.rd_stderr),
-                             "budget_exhausted": bool(np.any(np.asarray(res.budget_exhausted))),
+                             "budget_exhausted": not res.outcome.successful,
                              "errors": errors(case, ref, res)})
         loads.append({"after": f"{case.name} N={n:.0e}", "loadavg": list(os.getloadavg())})
         print(f"  [{case.name}] N = {n:.0e}: {seeds_for(n)} seeds x {len(SETTINGS)} settings, "

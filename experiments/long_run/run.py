@@ -136,7 +136,7 @@ def totals(result) -> dict:
     out = {k: float(getattr(result, k)) for k in ("rsp", "rd", "a", "tt", "roulette", "rd_stderr", "a_stderr",
                                                    "tt_stderr", "roulette_stderr")}
     out["steps"] = int(np.sum(np.asarray(result.steps)))
-    out["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
+    out["budget_exhausted"] = not result.outcome.successful
     out["energy_residual"] = energy_residual(result)
     return out
 

@@ -140,7 +140,7 @@ def main(argv=None):
         got = dict(zip(result.names, zip(result.values, result.uncertainties, spread)))
         row = {"seed": seed, "seconds_fit": result.seconds, "seconds_total": time.perf_counter() - t_fit,
                "seconds_measurement": t_gen, "variance_bias_removed": result.settings["variance_bias_removed"],
-               "converged": result.converged, "reason": result.reason, "retraces": len(result.history),
+               "converged": result.outcome.successful, "reason": result.outcome.value, "retraces": len(result.history),
                "sample_spread": result.settings["sample_spread"], "dead_detected": (~measured.good).nonzero()[0].tolist(),
                "shifts_px": shifts.tolist()}
         for name, true in (("mua", TRUTH["mua"]), ("a", TRUTH["a"]), ("g", TRUTH["g"]), ("c_ppix", TRUTH["c"])):

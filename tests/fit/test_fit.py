@@ -53,7 +53,7 @@ def test_recovers_absorption_within_the_reported_uncertainty(tmp_path):
     measured = _measurement(truth, 200_000)
     got = tf.fit(measured, tissue([3.0, 0.6]), [MUA], endoscope=ENDO, key=jax.random.key(1), options=OPTIONS,
                  illumination=LIGHT, config=FitConfig(photons=20_000, max_retraces=10))
-    assert got.converged, got.reason
+    assert got.outcome.successful, got.outcome.value
     # the measurement is itself a render: its Monte Carlo noise is the fit's simulation part scaled by
     # sqrt(photons ratio x averaged) (the noise of a render falls as 1 / sqrt(photons))
     one = got.simulation_uncertainties * math.sqrt(got.settings["averaged"])
@@ -175,7 +175,7 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_landings():
     got = tf.fit(measured, tissue([2.6, 0.8]), [MUA], endoscope=endo, key=jax.random.key(1), options=OPTIONS,
                  illumination=LIGHT, config=FitConfig(photons=4_000, max_retraces=10, average=2, batches=8),
                  progress=seen.append)
-    assert got.converged, got.reason
+    assert got.outcome.successful, got.outcome.value
     assert got.settings["averaged"] == 2 and seen[-1].samples == 2 and len(seen) == len(got.history) <= 10
     assert [r.retrace for r in seen] == list(range(len(seen)))
     assert seen[0].phase in ("approach", "arrive") and seen[-1].phase == "sample"
@@ -187,4 +187,4 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_landings():
                illumination=LIGHT, config=FitConfig(photons=1_000, max_retraces=1))
     unsettled = tf.fit(measured, tissue([2.6, 0.8]), [MUA], endoscope=endo, key=jax.random.key(1), options=OPTIONS,
                        illumination=LIGHT, config=FitConfig(photons=1_000, max_retraces=1), throw=False)
-    assert unsettled.outcome is tf.Outcome.NOT_CONVERGED and not unsettled.converged
+    assert unsettled.outcome is tf.Outcome.NOT_CONVERGED and not unsettled.outcome.successful

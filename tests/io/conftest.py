@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tissuefit import TraceResult
+from tissuefit import Outcome, TraceResult
 
 SHAPES = {
     "rd_r": ("nr",), "rd_r_stderr": ("nr",), "tt_r": ("nr",), "rd_a": ("na",), "tt_a": ("na",),
@@ -29,7 +29,7 @@ def fake_result(run, *, seed=0, **values) -> TraceResult:
     return TraceResult(
         photons=run.photons, tallies=spec, options=run.options,
         **{k: jnp.asarray(v, dtype=jnp.float64) for k, v in totals.items()},
-        steps=jnp.asarray(12345), budget_exhausted=jnp.asarray(False), **arrays,
+        steps=jnp.asarray(12345), outcome=Outcome.SUCCESSFUL, **arrays,
     )
 
 
@@ -71,7 +71,7 @@ def fake_spectral_result(scene, *, photons, records, seed=0, overflow=0):
         roulette=np.zeros(nb), roulette_fluor=np.zeros(nb),
         rsp_total=rsp.sum(), rd_total=rd.sum(), a_total=a.sum(), tt_total=tt.sum(),
         rd_total_stderr=0.01 * rd.sum(), tt_total_stderr=0.01 * tt.sum(),
-        steps=np.asarray([1000, 1200]), budget_exhausted=False,
+        steps=np.asarray([1000, 1200]), outcome=Outcome.SUCCESSFUL,
         surface_records=buffer(records.surface, 1234), volume_records=buffer(records.volume, 567),
     )
 

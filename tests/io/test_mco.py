@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tissuefit import LayeredTissue, Scene, TallySpec, TraceResult
+from tissuefit import LayeredTissue, Outcome, Scene, TallySpec, TraceResult
 from tissuefit.io import Run, read_mci, read_mco, write_mco
 from tissuefit.io._mco import format_mco
 from tissuefit.transport import TALLY_NAMES
@@ -63,7 +63,7 @@ def _result_from(mco: dict, run: Run) -> TraceResult:
         photons=run.photons, tallies=run.tallies, options=run.options,
         rsp=jnp.asarray(mco["rsp"]), rd=jnp.asarray(mco["rd"]), a=jnp.asarray(mco["a"]),
         tt=jnp.asarray(mco["tt"]), rd_stderr=jnp.asarray(0.0), a_stderr=jnp.asarray(0.0),
-        tt_stderr=jnp.asarray(0.0), steps=jnp.asarray(0), budget_exhausted=jnp.asarray(False), **arrays,
+        tt_stderr=jnp.asarray(0.0), steps=jnp.asarray(0), outcome=Outcome.SUCCESSFUL, **arrays,
     )
 
 

@@ -220,7 +220,7 @@ def test_only_requested_tallies_are_filled():
     for name in ("rd_r", "rd_r_stderr", "rd_a", "rd_ra", "tt_r", "tt_a", "tt_ra", "a_rz", "a_layer"):
         assert getattr(result, name) is None
     assert result.rd.dtype == np.float64 and result.a_z.dtype == np.float64
-    assert not bool(result.budget_exhausted) and int(result.steps) >= 50
+    assert result.outcome.successful and int(result.steps) >= 50
 
 
 def test_same_seed_same_result():

@@ -350,7 +350,7 @@ def test_voxel_grid_equals_the_boxes_it_is_made_of(key):
         return tf.trace_spectral(tf.SpectralScene(tissue, source=source), key=k, photons=60_000)
 
     a, b = run(boxes, key), run((grid,), jax.random.key(5))
-    assert b.mode == "per_band" and not b.budget_exhausted
+    assert b.mode == "per_band" and b.outcome.successful
     for name in ("rd", "tt", "rd_fluor"):
         agree(getattr(a, name), getattr(a, f"{name}_stderr"), getattr(b, name), getattr(b, f"{name}_stderr"), f"voxels {name}")
     assert b.rd_fluor[2] > 20 * b.rd_fluor_stderr[2]

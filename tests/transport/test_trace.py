@@ -152,7 +152,7 @@ def test_halton_flat_beam_agrees_with_random_launch():
 def test_budget_exhausted_is_reported():
     scene = tf.Scene(tf.LayeredTissue(n=[1.0], mua=[0.001], mus=[100.0], g=[0.0], thickness=[math.inf]))
     r = run(scene, 1000, options=tf.TraceOptions(lanes=256, max_steps=8))
-    assert r.budget_exhausted
+    assert r.outcome is tf.Outcome.BUDGET_EXHAUSTED
 
 
 def test_path_stats_give_beer_lambert_derivative():

@@ -70,9 +70,9 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(report, indent=2, allow_nan=False))
     else:
-        lines = [f"fit {'converged' if result.converged else 'NOT converged'}: {result.reason}",
+        lines = [f"fit {'converged' if result.outcome.successful else 'NOT converged'}: {result.outcome.value}",
                  f"chi2 {result.chi2:.1f} / {result.dof} dof, {len(result.history)} re-traces, {result.seconds:.1f} s"]
         lines += [f"  {n:<24} {v:12.5g} +- {e:.3g}" for n, v, e in zip(result.names, result.values, result.uncertainties)]
         lines += ["wrote " + ", ".join(str(f) for f in files)]
         print("\n".join(lines), flush=True)
-    return 0 if result.converged else 1
+    return 0 if result.outcome.successful else 1

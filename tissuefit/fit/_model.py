@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import checked_parameters
 from ..render import Endoscope, RenderOptions, render
 from ._parameters import Layout
 
@@ -65,8 +66,8 @@ class RenderModel(eqx.Module):
         size = self.layout.size - int(self.layout.scale)
         eye = jnp.eye(self.layout.size, dtype=jnp.float64)
 
-        def tissue_of(xv):
-            return self.layout.tissue(self.tissue, xv)
+        def tissue_of(xv):  # checked: an identity-transformed or prior-pulled step can leave the range
+            return checked_parameters(self.layout.tissue(self.tissue, xv), "tissue")
 
         tissue = tissue_of(x)
         tangents = tuple(jax.jvp(tissue_of, (x,), (eye[k],))[1] for k in range(size))

@@ -21,7 +21,7 @@ class FitResult(eqx.Module):
       `mask` [bands, H', W']; `wavelengths` [bands] nm; `binning`.
     - `history`: a `StepRecord` per re-trace (phase, photons, values, chi2, step fraction, the
       step's size against its jitter, estimates so far, seconds).
-    - `outcome` (`tissuefit.Outcome`), `converged` (outcome successful), `reason` (its message);
+    - `outcome` (`tissuefit.Outcome`; `outcome.successful`, and `outcome.value` the message);
       `seconds`: wall time of the loop (without the final render).
     - `tissue`: the fitted `SpectralTissue`; `simulation_rel_variance` [bands]: the final render's
       Monte Carlo variance per unit signal (q_b); `method`: what ran; `settings`.
@@ -51,14 +51,6 @@ class FitResult(eqx.Module):
     simulation_rel_variance: np.ndarray
     method: str
     settings: dict
-
-    @property
-    def converged(self) -> bool:
-        return self.outcome.successful
-
-    @property
-    def reason(self) -> str:
-        return self.outcome.value
 
     def value(self, name: str) -> tuple[float, float]:
         """(value, standard error) of the parameter `name`."""

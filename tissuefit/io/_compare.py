@@ -176,14 +176,40 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
                          "size (register the camera onto the render's grid first)")
     if not measured.calibrated:
         measured = prepare_measured(measured, register=register, upsample_factor=upsample_factor)
-    pairs, unmatched = [], []  # pairs: (measured band, sim band or None, resampling weights or None)
+    pairs, unmatched = _match_bands(sim, measured, wavelength_tolerance_nm)
+    mb = [b for b, _, _ in pairs]
+    sim_data = np.asarray(sim.data, dtype=np.float64)
+    s_all = np.stack([sim_data[j] if j is not None else np.tensordot(w, sim_data, axes=1) for _, j, w in pairs])
+    m_all = measured.data[mb].copy()
+    valid = measured.valid[mb].copy()
+    good = measured.good[mb].copy()
+    alignment = {"applied": False}
+    if register and good.any():
+        alignment = _align(s_all, m_all, valid, good, upsample_factor)  # shifts m_all and valid in place
+    mask = valid & good[:, None, None]
+    gains = _gains(s_all, m_all, mask, normalise)
+    s_all = s_all * gains[:, None, None]
+    rows = _band_rows(pairs, sim, measured, s_all, m_all, mask, good, gains)
+    live = np.flatnonzero(good)
+    angle = spectral_angle(s_all[live], m_all[live], mask[live].all(axis=0)) if live.size else \
+        np.full(mask.shape[1:], np.nan)
+    report = _report(sim, measured, sim_file, normalise, gains, alignment, unmatched, rows, angle, good)
+    return Comparison(wavelengths=measured.wavelengths[mb], good=good, sim=s_all, measured=m_all, mask=mask,
+                      angle_deg=angle, report=report)
+
+
+def _match_bands(sim: SpectralStack, measured: MeasuredStack, tolerance_nm: float) -> tuple[list, list]:
+    """(pairs, unmatched): each measured band paired with the simulated band it matches (centre and
+    width within `tolerance_nm`) as (measured band, sim band, None), or with resampling weights over
+    the simulated bands as (measured band, None, weights); the rest listed with the reason."""
+    pairs, unmatched = [], []
     sim_widths = np.asarray(sim.widths, np.float64)
     for b, wl in enumerate(measured.wavelengths):
         j = int(np.argmin(np.abs(sim.wavelengths - wl)))
         width = None if measured.widths is None else float(measured.widths[b])
-        same_width = width is None or (abs(width - sim_widths[j]) <= wavelength_tolerance_nm
+        same_width = width is None or (abs(width - sim_widths[j]) <= tolerance_nm
                                        and (measured.response or "boxcar") == sim.response)
-        if abs(sim.wavelengths[j] - wl) <= wavelength_tolerance_nm and same_width:
+        if abs(sim.wavelengths[j] - wl) <= tolerance_nm and same_width:
             pairs.append((b, j, None))
             continue
         weights, why = resample_weights(sim.wavelengths, sim_widths, sim.response, float(wl), width, measured.response)
@@ -194,41 +220,47 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
                               "reason": why})
     if not pairs:
         raise ValueError(f"{measured.source}: no measured band can be compared: none lies within "
-                         f"{wavelength_tolerance_nm:g} nm of a simulated band's centre, and none can be resampled "
+                         f"{tolerance_nm:g} nm of a simulated band's centre, and none can be resampled "
                          f"from them ({unmatched[0]['wavelength_nm']:g} nm: {unmatched[0]['reason']}); measured "
                          f"{measured.wavelengths.tolist()} nm, simulated {sim.wavelengths.tolist()} nm")
-    mb = [b for b, _, _ in pairs]
-    sim_data = np.asarray(sim.data, dtype=np.float64)
-    s_all = np.stack([sim_data[j] if j is not None else np.tensordot(w, sim_data, axes=1) for _, j, w in pairs])
-    m_all = measured.data[mb].copy()
-    valid = measured.valid[mb].copy()
-    good = measured.good[mb].copy()
-    alignment = {"applied": False}
-    if register and good.any():
-        live = np.flatnonzero(good)
-        fixed = sum(_unit(registration_image(s_all[k], np.ones_like(valid[k]), "gradient")) for k in live)
-        moving = sum(_unit(registration_image(m_all[k], valid[k], "gradient")) for k in live)
-        shift, corr = estimate_shift(fixed, moving, upsample_factor=upsample_factor)
-        ok = corr >= 0.3 and np.hypot(*shift) <= min(valid.shape[1:]) / 4
-        alignment = {"shift_px": [round(float(v), 4) for v in shift], "correlation": round(corr, 4),
-                     "applied": bool(ok and np.any(shift)),
-                     "convention": "shift [row, column] px applied to the measured stack to put it on the "
-                                   "simulation's grid"}
-        if alignment["applied"]:
-            for k in range(len(mb)):
-                m_all[k] = shift_band(m_all[k], shift)
-                valid[k] = shift_mask(valid[k], shift, inside=True)
-    mask = valid & good[:, None, None]
+    return pairs, unmatched
+
+
+def _align(s_all, m_all, valid, good, upsample_factor: int) -> dict:
+    """Register the measured bands onto the simulation's grid (one shift for the stack, from the
+    good bands' gradient images); shifts `m_all` and `valid` in place when the match is trusted.
+    Returns the report's alignment entry."""
+    live = np.flatnonzero(good)
+    fixed = sum(_unit(registration_image(s_all[k], np.ones_like(valid[k]), "gradient")) for k in live)
+    moving = sum(_unit(registration_image(m_all[k], valid[k], "gradient")) for k in live)
+    shift, corr = estimate_shift(fixed, moving, upsample_factor=upsample_factor)
+    ok = corr >= 0.3 and np.hypot(*shift) <= min(valid.shape[1:]) / 4
+    alignment = {"shift_px": [round(float(v), 4) for v in shift], "correlation": round(corr, 4),
+                 "applied": bool(ok and np.any(shift)),
+                 "convention": "shift [row, column] px applied to the measured stack to put it on the "
+                               "simulation's grid"}
+    if alignment["applied"]:
+        for k in range(len(m_all)):
+            m_all[k] = shift_band(m_all[k], shift)
+            valid[k] = shift_mask(valid[k], shift, inside=True)
+    return alignment
+
+
+def _gains(s_all, m_all, mask, normalise: str) -> np.ndarray:
+    """Least-squares gains [bands] of the simulation onto the measurement: ones ("none"), one for the
+    stack ("stack") or one per band ("band")."""
     if normalise == "none":
-        gains = np.ones(len(mb))
-    elif normalise == "stack":
+        return np.ones(len(s_all))
+    if normalise == "stack":
         den = float(np.sum(np.where(mask, s_all**2, 0.0)))
-        gains = np.full(len(mb), float(np.sum(np.where(mask, s_all * m_all, 0.0))) / den if den > 0 else 1.0)
-    else:
-        den = np.sum(np.where(mask, s_all**2, 0.0), axis=(1, 2))
-        num = np.sum(np.where(mask, s_all * m_all, 0.0), axis=(1, 2))
-        gains = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-    s_all = s_all * gains[:, None, None]
+        return np.full(len(s_all), float(np.sum(np.where(mask, s_all * m_all, 0.0))) / den if den > 0 else 1.0)
+    den = np.sum(np.where(mask, s_all**2, 0.0), axis=(1, 2))
+    num = np.sum(np.where(mask, s_all * m_all, 0.0), axis=(1, 2))
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+
+
+def _band_rows(pairs, sim, measured, s_all, m_all, mask, good, gains) -> list[dict]:
+    """The report's row per compared band: its match, gain and metrics (or why it is dead)."""
     dead = {d["band"]: d["reason"] for d in measured.report.get("dead_bands", [])}
     rows = []
     for k, (b, j, w) in enumerate(pairs):
@@ -243,16 +275,19 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
         else:
             row.update({"pixels": 0, "ssim": None, "psnr_db": None, "rmse": None, "dead_reason": dead.get(b, "")})
         rows.append(row)
+    return rows
+
+
+def _report(sim, measured, sim_file, normalise, gains, alignment, unmatched, rows, angle, good) -> dict:
+    """The comparison's JSON report (format tissuefit-compare/1)."""
     live = np.flatnonzero(good)
-    angle = spectral_angle(s_all[live], m_all[live], mask[live].all(axis=0)) if live.size else \
-        np.full(mask.shape[1:], np.nan)
     finite = angle[np.isfinite(angle)]
 
     def mean(key):
         values = [r[key] for r in rows if r.get(key) is not None]
         return _finite_or_none(float(np.mean(values))) if values else None
 
-    report = {
+    return {
         "format": "tissuefit-compare/1", "tissuefit_version": tissuefit_version(),
         "sim": {"file": sim_file, "kind": sim.kind, "units": sim.units, "shape": list(sim.data.shape),
                 "wavelengths_nm": sim.wavelengths.tolist()},
@@ -271,8 +306,6 @@ def compare_stacks(sim: SpectralStack, measured: MeasuredStack, *, register: boo
         "summary": {"ssim_mean": mean("ssim"), "psnr_db_mean": mean("psnr_db"), "rmse_mean": mean("rmse"),
                     "bands_compared": int(live.size), "bands_dead": int((~good).sum())},
     }
-    return Comparison(wavelengths=measured.wavelengths[mb], good=good, sim=s_all, measured=m_all, mask=mask,
-                      angle_deg=angle, report=report)
 
 
 def _unit(image: np.ndarray) -> np.ndarray:

@@ -49,8 +49,8 @@ def fit_report(result, *, extra: dict | None = None) -> dict:
     correlations, per-band metrics, convergence history and outcome, settings, version (and `extra`,
     e.g. the scene). Non-finite numbers become null."""
     report = {
-        "converged": bool(result.converged),
-        "reason": result.reason,
+        "converged": result.outcome.successful,  # the report file's keys, from the one outcome
+        "reason": result.outcome.value,
         "outcome": result.outcome.name.lower(),
         "method": result.method,
         "parameters": [{"name": n, "value": float(v), "uncertainty": float(s), "statistical": float(a),
@@ -119,7 +119,7 @@ def fit_plot_png(result, *, bands: int = 4, units: str | None = None) -> bytes:
     chi = [h.chi2 for h in result.history]
     ax.semilogy(range(len(chi)), chi, "o-")
     ax.set_xlabel("re-trace"), ax.set_ylabel("chi2")
-    ax.set_title("converged" if result.converged else "not converged", fontsize=8)
+    ax.set_title("converged" if result.outcome.successful else "not converged", fontsize=8)
     fig.suptitle(", ".join(f"{n} = {v:.4g} ± {s:.2g}" for n, v, s in zip(result.names, result.values, result.uncertainties)),
                  fontsize=8)
     fig.tight_layout()

@@ -14,6 +14,7 @@ import re
 import numpy as np
 
 from .._atomic import write_text_atomic
+from .._outcome import Outcome
 from ..scene import PencilBeam
 from ..transport import TraceResult
 from ._mci import _FLOAT, _DataLines, _read_text, read_inparm
@@ -63,7 +64,7 @@ def format_mco(run: Run, result: TraceResult, *, seed: int, seconds: float) -> s
         f"A {float(result.a_stderr):.6G}, Tt {float(result.tt_stderr):.6G}.\n")
     if not _is_mcml_beam(run.scene.source):
         put(f"# Source: {type(run.scene.source).__name__} (not MCML's normal pencil beam).\n")
-    if bool(np.asarray(result.budget_exhausted)):
+    if result.outcome is Outcome.BUDGET_EXHAUSTED:
         put("# WARNING: the step budget was exhausted; the tallies are incomplete.\n")
     put("\n")
 

@@ -309,35 +309,13 @@ def _assemble(raw, *, where: str, reader: str, dtype: str, wavelengths, widths=N
     if raw.ndim != 3:
         raise ValueError(f"{where}: the samples have shape {list(raw.shape)}; allowed [bands, height, width]")
     bands, height, width = raw.shape
-    wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
-    if wl.size != bands:
-        raise ValueError(f"{where}: wavelengths_nm has {wl.size} values; expected one per band ({bands} bands)")
-    _vector(wl, "wavelengths_nm", where, bands, unit="nm")
-    for b in range(1, bands):
-        if not wl[b] > wl[b - 1]:
-            raise ValueError(f"{where}: wavelengths_nm[{b}] = {wl[b]:g} is not above wavelengths_nm[{b - 1}] = "
-                             f"{wl[b - 1]:g}; allowed ({wl[b - 1]:g}, inf) nm (strictly increasing)")
+    wl = _wavelengths(wavelengths, where, bands)
     widths = None if widths is None else _vector(widths, "band_widths_nm", where, bands, unit="nm")
     exposure = None if exposure is None else _vector(exposure, "exposure_s", where, bands, unit="s")
-    if noise is not None:
-        a, b = (noise["a"], noise["b"]) if isinstance(noise, dict) else noise
-        for name, v, unit in (("noise.a", a, units), ("noise.b", b, f"({units})^2")):
-            if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{where}: {name} = {v!r} is out of range; allowed [0, inf) {unit}")
-        noise = (float(a), float(b))
+    noise = None if noise is None else _noise(noise, where, units)
     data = raw.astype(np.float64)
     _finite(data, "image", where, wl)
-    refs = {}
-    for key, ref in (("dark", dark), ("white", white)):
-        if ref is None:
-            continue
-        ref = np.asarray(ref, dtype=np.float64)
-        ref = ref[None] if ref.ndim == 2 else ref
-        if ref.shape not in ((bands, height, width), (1, height, width)):
-            raise ValueError(f"{where}: {key}: shape {list(ref.shape)}; allowed [{bands}, {height}, {width}] or "
-                             f"[1, {height}, {width}] (bands, height, width)")
-        _finite(ref, key, where, wl)
-        refs[key] = ref
+    refs = _references({"dark": dark, "white": white}, where, raw.shape, wl)
     if saturation is None and np.dtype(dtype).kind in "iu":
         saturation = float(np.iinfo(dtype).max)
     if saturation is not None and not (math.isfinite(saturation) and saturation > 0):
@@ -373,6 +351,45 @@ def _assemble(raw, *, where: str, reader: str, dtype: str, wavelengths, widths=N
         dark=refs.get("dark"), white=refs.get("white"), exposure_s=exposure, response=response, noise=noise,
         saturation_level=saturation, scene_file=None if scene_file is None else str(scene_file), units=units,
         source=where, report=report)
+
+
+def _wavelengths(wavelengths, where: str, bands: int) -> np.ndarray:
+    """The band centres [nm] as float64, one per band, finite, positive and strictly increasing."""
+    wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
+    if wl.size != bands:
+        raise ValueError(f"{where}: wavelengths_nm has {wl.size} values; expected one per band ({bands} bands)")
+    _vector(wl, "wavelengths_nm", where, bands, unit="nm")
+    for b in range(1, bands):
+        if not wl[b] > wl[b - 1]:
+            raise ValueError(f"{where}: wavelengths_nm[{b}] = {wl[b]:g} is not above wavelengths_nm[{b - 1}] = "
+                             f"{wl[b - 1]:g}; allowed ({wl[b - 1]:g}, inf) nm (strictly increasing)")
+    return wl
+
+
+def _noise(noise, where: str, units: str) -> tuple[float, float]:
+    """The noise model (a, b) (variance = a signal + b), from a dict or a pair, each finite and >= 0."""
+    a, b = (noise["a"], noise["b"]) if isinstance(noise, dict) else noise
+    for name, v, unit in (("noise.a", a, units), ("noise.b", b, f"({units})^2")):
+        if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"{where}: {name} = {v!r} is out of range; allowed [0, inf) {unit}")
+    return float(a), float(b)
+
+
+def _references(given: dict, where: str, shape: tuple, wl: np.ndarray) -> dict:
+    """The dark and white frames given (name -> array or None) as float64 [bands or 1, H, W], finite."""
+    bands, height, width = shape
+    refs = {}
+    for key, ref in given.items():
+        if ref is None:
+            continue
+        ref = np.asarray(ref, dtype=np.float64)
+        ref = ref[None] if ref.ndim == 2 else ref
+        if ref.shape not in ((bands, height, width), (1, height, width)):
+            raise ValueError(f"{where}: {key}: shape {list(ref.shape)}; allowed [{bands}, {height}, {width}] or "
+                             f"[1, {height}, {width}] (bands, height, width)")
+        _finite(ref, key, where, wl)
+        refs[key] = ref
+    return refs
 
 
 def _finite(data: np.ndarray, field: str, where: str, wl: np.ndarray) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_writer
+from .._outcome import Outcome
 from ._report import file_stems, tissuefit_version
 from ._run import RenderSpec, SpectralRun
 from ._scenefile import scene_to_dict
@@ -51,7 +52,7 @@ def render_stack(run: SpectralRun, spec: RenderSpec, result, *, seed: int, secon
         "filter_transmission": _floats(result.filter_transmission),
         "trace": {"mode": trace.mode, "rd_total": float(trace.rd_total),
                   "rd_fluor_total": float(np.sum(np.asarray(trace.rd_fluor))),
-                  "budget_exhausted": bool(np.any(np.asarray(trace.budget_exhausted)))},
+                  "budget_exhausted": trace.outcome is Outcome.BUDGET_EXHAUSTED},
         "timings_s": {**{k: float(v) for k, v in result.timings.items()}, "total": float(seconds)},
     }
     if result.estimator == "nee":

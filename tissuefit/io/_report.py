@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import write_text_atomic
+from .._outcome import Outcome
 from ..transport import SpectralResult, TraceResult
 from ._run import Run, SpectralRun
 from ._scenefile import scene_to_dict
@@ -96,7 +97,7 @@ def result_to_dict(run: Run | SpectralRun, result: TraceResult | SpectralResult,
     record: dict = _header(run, photons, seed, seconds, resumed_photons)
     record.update({key: _json_number(getattr(result, key)) for key in _TOTALS})
     record["steps"] = int(np.sum(np.asarray(result.steps)))
-    record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
+    record["budget_exhausted"] = result.outcome is Outcome.BUDGET_EXHAUSTED
     units = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
              **({"resumed_photons": "-"} if "resumed_photons" in record else {}), **{key: "-" for key in _TOTALS}}
     for name, (axes, unit) in _TALLIES.items():
@@ -163,7 +164,7 @@ def spectral_result_to_dict(run: SpectralRun, result: SpectralResult, *, seed: i
         "volume_all": bool(run.records.volume_all),
     }
     record["steps"] = int(np.sum(np.asarray(result.steps)))
-    record["budget_exhausted"] = bool(np.any(np.asarray(result.budget_exhausted)))
+    record["budget_exhausted"] = result.outcome is Outcome.BUDGET_EXHAUSTED
     dimensionless = (*SPECTRAL_TOTALS, "rd_fluor_total", "tt_fluor_total", *SPECTRAL_PER_BAND)
     record["units"] = {"photons": "-", "seconds": "s", "photons_per_second": "1/s", "steps": "-",
                        **({"resumed_photons": "-"} if "resumed_photons" in record else {}),

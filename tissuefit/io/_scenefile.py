@@ -145,20 +145,7 @@ def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: P
     optics = [_spectralfile.build_optics(ctx, layer, f"layers[{i}]") for i, layer in enumerate(layers)]
     regions = [_spectralfile.build_region(ctx, region, f"regions[{k}]", depths)
                for k, region in enumerate(doc.get("regions", []))]
-    render = None
-    if "endoscope" in doc or "render" in doc:
-        endoscope = _spectralfile.build_endoscope(ctx, doc.get("endoscope"))
-        render_doc = dict(doc.get("render", {}))
-        filter_doc = render_doc.pop("observation_filter", None)
-        render_options = _spectralfile.build_render_options(ctx, render_doc)
-        built_filter = (_spectralfile.build_spectrum(ctx, filter_doc, "render.observation_filter")
-                        if filter_doc is not None else None)
-        if endoscope is not None and render_options is not None and (filter_doc is None or built_filter is not None):
-            render = RenderSpec(endoscope=endoscope, options=render_options,
-                                photons=int(render_doc.get("photons", DEFAULT_RENDER_PHOTONS)),
-                                seed=int(render_doc["seed"]) if "seed" in render_doc else None,
-                                observation_filter=None if built_filter is None else built_filter[0],
-                                observation_filter_doc=None if built_filter is None else json.dumps(built_filter[1]))
+    render = _render_spec(ctx, doc) if "endoscope" in doc or "render" in doc else None
     if ctx.problems:
         refuse(ctx.problems)
     try:
@@ -194,6 +181,24 @@ def _spectral_run(doc: dict, *, source_file: str, default_name: str, base_dir: P
         records=records, seed=int(run["seed"]) if "seed" in run else None, source_file=source_file,
         document=json.dumps(document), input_files=tuple(sorted(ctx.files.items())), render=render,
     )
+
+
+def _render_spec(ctx, doc: dict) -> RenderSpec | None:
+    """The document's [endoscope] and [render] tables as a `RenderSpec` (None when a part failed:
+    its problems are in `ctx.problems`)."""
+    endoscope = _spectralfile.build_endoscope(ctx, doc.get("endoscope"))
+    render_doc = dict(doc.get("render", {}))
+    filter_doc = render_doc.pop("observation_filter", None)
+    render_options = _spectralfile.build_render_options(ctx, render_doc)
+    built_filter = (_spectralfile.build_spectrum(ctx, filter_doc, "render.observation_filter")
+                    if filter_doc is not None else None)
+    if endoscope is None or render_options is None or (filter_doc is not None and built_filter is None):
+        return None
+    return RenderSpec(endoscope=endoscope, options=render_options,
+                      photons=int(render_doc.get("photons", DEFAULT_RENDER_PHOTONS)),
+                      seed=int(render_doc["seed"]) if "seed" in render_doc else None,
+                      observation_filter=None if built_filter is None else built_filter[0],
+                      observation_filter_doc=None if built_filter is None else json.dumps(built_filter[1]))
 
 
 def _check_semi_infinite_glass(tissue: SpectralTissue) -> None:

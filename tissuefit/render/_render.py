@@ -90,7 +90,7 @@ class RenderResult(eqx.Module):
     - `photons`: launches traced, `launched_fraction`: the illumination's power they carry.
     - `filter_transmission` [bands]: the observation filter's band averages (ones without one).
     - `timings` (dict of seconds per stage: trace, maps, geometry, estimate).
-    - `trace`: the `SpectralResult` of the launches (tallies; records dropped).
+    - `trace`: the `SpectralResult` of the launches (tallies; records dropped); `outcome` its `Outcome`.
     - next-event estimator with `keep_batches`: `batches` [batches, bands, H, W], the raw diffuse
       image of each independent batch of photons; with `tangents`: `tangents` [K, bands, H, W] the
       raw diffuse image's derivative along each tangent tissue (path replay), and per batch
@@ -116,6 +116,12 @@ class RenderResult(eqx.Module):
     batches: np.ndarray | None = None
     tangents: np.ndarray | None = None
     tangent_batches: np.ndarray | None = None
+
+    @property
+    def outcome(self):
+        """How the render's trace ended (`tissuefit.Outcome`, that of `trace`): BUDGET_EXHAUSTED
+        when `TraceOptions.max_steps` stopped it early (the image then misses light)."""
+        return self.trace.outcome
 
 
 class _Setup(eqx.Module):

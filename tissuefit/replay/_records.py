@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._checks import checked_parameters
 from .._setup import float64
 from ..scene import SpectralTissue
 from ..transport import PhotonRecords, segment_log_ratio
@@ -141,7 +142,12 @@ class RecordReplay(eqx.Module):
 
     @float64
     def power(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
-        """The records' powers [n, bands] at `tissue` (per launched photon, as `PhotonRecords.power`)."""
+        """The records' powers [n, bands] at `tissue` (per launched photon, as `PhotonRecords.power`).
+        Out-of-range coefficients raise, traced ones too (`tissuefit._checks.checked_parameters`)."""
+        return self.unchecked_power(checked_parameters(tissue, "tissue"))
+
+    def unchecked_power(self, tissue: SpectralTissue) -> Float[Array, "n bands"]:
+        """`power` for a tissue its caller has checked already (`RenderReplay.terms`)."""
         p0 = jnp.asarray(self.records.power, jnp.float64)
         lr = jnp.where(p0 != 0, self.log_ratio(tissue), 0.0)
         return p0 * jnp.exp(lr) * self.conversion_ratio(tissue)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._checks import checked_parameters
 from .._setup import float64
 from ..photonmap import estimate_surface, kernel_norm, update_map
 from ..render import RenderOptions, Shading, image_of, shade, surface_radiance
@@ -23,7 +24,7 @@ from ._records import RecordReplay
 
 @eqx.filter_jit
 def _replay_stack(replay: "RenderReplay", tissue):
-    l_s, l_f = replay.terms(tissue)
+    l_s, l_f = replay.unchecked_terms(tissue)
     return l_s + l_f + replay.specular
 
 
@@ -37,7 +38,7 @@ box^2 = box, (1 - u^2)^2 = biweight)."""
 
 @eqx.filter_jit
 def _replay_variance(replay: "RenderReplay", tissue):
-    p = replay.surface.power(tissue)
+    p = replay.surface.unchecked_power(tissue)
     return _variance_image(replay, p * p)
 
 
@@ -68,7 +69,7 @@ def _replay_contributions(replay: "RenderReplay", tissue, weights):
 
     The surface term is linear in the records' powers P, so c[i, m] = sum_b P[i, b] d<weights[m], .>/dP[i, b]
     (one reverse-mode pass per functional)."""
-    p = replay.surface.power(tissue)
+    p = replay.surface.unchecked_power(tissue)
     _, pullback = jax.vjp(lambda q: _surface_image(replay, q), p)
 
     def one(w):
@@ -76,6 +77,18 @@ def _replay_contributions(replay: "RenderReplay", tissue, weights):
         return jnp.sum(dp * p, axis=1)
 
     return jax.lax.map(one, weights).T
+
+
+def _staged(tree) -> bool:
+    """Whether `tree` holds values being staged into a compiled program (under `jax.jit`), rather
+    than evaluated op by op (concrete, or under eager grad, jvp or vmap)."""
+    for x in jax.tree.leaves(tree):
+        while isinstance(x, jax.core.Tracer):  # JVP / linearize tracers hold `primal`, batch tracers `val`
+            inner = next((getattr(x, a) for a in ("primal", "val") if hasattr(x, a)), None)
+            if not isinstance(inner, (jax.core.Tracer, jax.Array, np.ndarray)):  # a jit tracer's val is a Var
+                return True
+            x = inner
+    return False
 
 
 def variance_available(options: "RenderOptions") -> bool:
@@ -113,14 +126,28 @@ class RenderReplay(eqx.Module):
 
     @float64
     def terms(self, tissue: SpectralTissue):
-        """(surface, fluorescence) images [bands, H, W] at `tissue` (JAX arrays)."""
+        """(surface, fluorescence) images [bands, H, W] at `tissue` (JAX arrays). Out-of-range
+        coefficients raise (`checked`)."""
+        return self.unchecked_terms(self.checked(tissue))
+
+    def checked(self, tissue: SpectralTissue) -> SpectralTissue:
+        """`tissue` with its coefficients checked (`tissuefit._checks.checked_parameters`), before the
+        replay's compiled programs: concrete values, and traced ones under grad, jvp and vmap, raise
+        naming the field. Under an outer `jax.jit` on several devices the check sits in the same
+        program as the photon-map estimate's collectives, where a raising callback would stall
+        the other devices: there out-of-range values turn the result to NaN instead of raising."""
+        on_error = "nan" if jax.local_device_count() > 1 and _staged(tissue) else "raise"
+        return checked_parameters(tissue, "tissue", on_error=on_error)
+
+    def unchecked_terms(self, tissue: SpectralTissue):
+        """`terms` for a tissue checked already."""
         smap, vmap_arr, vmap_em = self.maps
-        p_s = self.surface.power(tissue)
+        p_s = self.surface.unchecked_power(tissue)
         smap = update_map(smap, _with_power(self.surface.records, jnp.concatenate([p_s, jnp.ones((p_s.shape[0], 1))], axis=1)))
         if vmap_arr is not None:
-            vmap_arr = update_map(vmap_arr, _with_power(self.arrivals.records, self.arrivals.power(tissue)))
+            vmap_arr = update_map(vmap_arr, _with_power(self.arrivals.records, self.arrivals.unchecked_power(tissue)))
         if vmap_em is not None:
-            vmap_em = update_map(vmap_em, _with_power(self.emissions.records, self.emissions.power(tissue)))
+            vmap_em = update_map(vmap_em, _with_power(self.emissions.records, self.emissions.unchecked_power(tissue)))
         mua, mus, g = (jnp.asarray(a, jnp.float64) for a in tissue.properties())
         l_s, l_f, _ = shade(self.shading, mua, mus, g, smap, vmap_arr, vmap_em, linear_g=True)
         t = self.transmission[:, None, None]
@@ -129,8 +156,8 @@ class RenderReplay(eqx.Module):
     @float64
     def stack(self, tissue: SpectralTissue):
         """The stack [bands, H, W] at `tissue`: surface + fluorescence + specular (compiled once per
-        replay structure; differentiable and vmap-able in `tissue`)."""
-        return _replay_stack(self, tissue)
+        replay structure; differentiable and vmap-able in `tissue`). Out-of-range coefficients raise (`checked`)."""
+        return _replay_stack(self, self.checked(tissue))
 
     @property
     def has_variance(self) -> bool:
@@ -147,7 +174,7 @@ class RenderReplay(eqx.Module):
             raise ValueError(f"replay variance: needs a fixed surface bandwidth (k = None) and kernel "
                              f"{' or '.join(map(repr, SQUARED_KERNEL))}; got k = {self.shading.options.k}, "
                              f"kernel = {self.shading.options.kernel!r}")
-        return _replay_variance(self, tissue)
+        return _replay_variance(self, self.checked(tissue))
 
     @property
     def surface_only(self) -> bool:
@@ -174,7 +201,7 @@ class RenderReplay(eqx.Module):
         if w.ndim != 4 or w.shape[1:] != (self.transmission.shape[0], *self.hit.shape):
             raise ValueError(f"replay covariance: weights have shape {tuple(w.shape)}; expected "
                              f"[m, {self.transmission.shape[0]}, {self.hit.shape[0]}, {self.hit.shape[1]}]")
-        c = np.asarray(_replay_contributions(self, tissue, w), np.float64)
+        c = np.asarray(_replay_contributions(self, self.checked(tissue), w), np.float64)
         total = c.sum(0)
         return c.T @ c - np.outer(total, total) / float(self.photons)
 

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_positive_int
+from .._outcome import Outcome
 from ..scene import LayeredTissue, Scene
 from ._config import TallySpec, TraceOptions
 from ._result import TraceResult, bin_measures
@@ -511,7 +512,7 @@ def trace_reference(
     fractions; rd_r [1/cm^2], rd_a [1/sr], a_z [1/cm], a_rz [1/cm^3], ...), with batch-means
     standard errors, and `roulette`, the net weight roulette created, so that
     rsp + rd + a + tt - roulette = 1 to rounding. `steps` counts every step (interaction or face);
-    `budget_exhausted` is False; `path_stats` is not computed (None).
+    `outcome` is SUCCESSFUL; `path_stats` is not computed (None).
     """
     if isinstance(scene, LayeredTissue):
         scene = Scene(tissue=scene)
@@ -542,6 +543,6 @@ def trace_reference(
         tallies=tallies,
         options=options,
         steps=jnp.asarray(steps, dtype=jnp.int64),
-        budget_exhausted=jnp.asarray(False),
+        outcome=Outcome.SUCCESSFUL,
         **arrays,
     )

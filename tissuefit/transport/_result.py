@@ -6,6 +6,7 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._outcome import Outcome
 from ._config import TallySpec, TraceOptions
 
 
@@ -39,7 +40,8 @@ class TraceResult(eqx.Module):
     - `a_z` [1/cm], `a_rz` [1/cm^3]: absorbed power density; fluence = a_rz / mua [1/cm^2].
     - `a_layer` [-]: absorbed fraction per layer.
     Bookkeeping: `photons` launched, `steps` photon steps taken (hop/drop/spin or boundary),
-    `budget_exhausted` True when `max_steps` stopped the run early (tallies then incomplete).
+    `outcome` (`tissuefit.Outcome`): BUDGET_EXHAUSTED when `max_steps` stopped the run early (tallies
+    then incomplete), else SUCCESSFUL.
     - `roulette` [-]: net weight created by Russian roulette per photon (zero-mean); exactly,
       `rsp + rd + a + tt - roulette = 1` up to float64 rounding.
     - `path_stats`: weighted path statistics when `TraceOptions.path_stats` (see `PathStats`),
@@ -58,7 +60,7 @@ class TraceResult(eqx.Module):
     a_stderr: Float[Array, ""]
     tt_stderr: Float[Array, ""]
     steps: Array
-    budget_exhausted: Array
+    outcome: Outcome = eqx.field(static=True)
     rd_r: Float[Array, " nr"] | None = None
     rd_r_stderr: Float[Array, " nr"] | None = None
     rd_a: Float[Array, " na"] | None = None

@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_positive_int, check_range, is_concrete
+from .._checks import check_positive_int, check_range, checked_parameters, is_concrete
+from .._outcome import Outcome
 from .._setup import float64
 from ..scene import BandGrid, SpectralScene
 from ._config import TraceOptions
@@ -86,7 +87,7 @@ class SpectralResult(eqx.Module):
     (`EmissionSites`, powers per launched photon of this trace times its photon count: raw weights),
     `sites_overflow` the sites that did not fit (their light is missing: retrace with more room).
     With `tangents`: `image_tangents` [batches, K, bands, H, W], the image's derivative along each.
-    `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `budget_exhausted`.
+    `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `outcome` (`tissuefit.Outcome`).
     """
 
     photons: int = eqx.field(static=True)
@@ -117,7 +118,7 @@ class SpectralResult(eqx.Module):
     rd_total_stderr: Float[Array, ""]
     tt_total_stderr: Float[Array, ""]
     steps: Array
-    budget_exhausted: bool
+    outcome: Outcome = eqx.field(static=True)
     surface_records: PhotonRecords | None = None
     volume_records: PhotonRecords | None = None
     image: np.ndarray | None = None
@@ -206,6 +207,11 @@ class SpectralKernel(eqx.Module):
     @property
     def options(self) -> TraceOptions:
         return self.config.options
+
+    def checked(self, inputs):
+        """`inputs` with the tissue's parameters checked (not the tangents: directions may be negative)."""
+        tissue = checked_parameters(inputs.scene.tissue, "scene.tissue")
+        return eqx.tree_at(lambda i: i.scene.tissue, inputs, tissue)
 
     def medium(self, inputs):
         return medium_arrays(inputs.scene, self.config, jnp.dtype(self.options.precision), inputs.tangents)
@@ -353,7 +359,7 @@ def _normalise(acc, photons: int, scene: SpectralScene, config: SpectralConfig, 
         roulette=roulette, roulette_fluor=roulette_fluor,
         rsp_total=rsp_total, rd_total=tot_mean[0], tt_total=tot_mean[1], a_total=float(a.sum()),
         rd_total_stderr=tot_err[0], tt_total_stderr=tot_err[1],
-        steps=total(acc.steps), budget_exhausted=bool(exhausted),
+        steps=total(acc.steps), outcome=Outcome.BUDGET_EXHAUSTED if exhausted else Outcome.SUCCESSFUL,
         surface_records=_records(acc.surface, scene, config, photons),
         volume_records=_records(acc.volume, scene, config, photons),
         **_image_parts(acc, config, photons, scene),

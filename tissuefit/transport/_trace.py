@@ -26,7 +26,8 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec as P
 from jaxtyping import Array
 
-from .._checks import check_positive_int
+from .._checks import check_positive_int, checked_parameters
+from .._outcome import Outcome
 from .._setup import float64
 from ..scene import Scene
 from . import _rng
@@ -40,11 +41,15 @@ MAX_PHOTONS = 2**32 - 1
 class LayeredKernel(eqx.Module):
     """The single-band tracer's steps (`_lanes.py`) behind the interface `_loop` drives.
 
-    A kernel is static (a jit cache key) and provides `medium(scene)`, `refill`, `step` and
-    `harvest`; the spectral tracer has its own (`_spectral.py`)."""
+    A kernel is static (a jit cache key) and provides `checked(scene)`, `medium(scene)`, `refill`,
+    `step` and `harvest`; the spectral tracer has its own (`_spectral.py`)."""
 
     tallies: TallySpec = eqx.field(static=True)
     options: TraceOptions = eqx.field(static=True)
+
+    def checked(self, scene):
+        """`scene` with its tissue's parameters checked (`checked_parameters`; once per run)."""
+        return eqx.tree_at(lambda s: s.tissue, scene, checked_parameters(scene.tissue, "scene.tissue"))
 
     def medium(self, scene):
         return _medium(scene, jnp.dtype(self.options.precision))
@@ -203,6 +208,10 @@ def run_lanes(kernel, scene, *, key, photons: int, chunks: int, progress, device
     order of `devices` and stacked on a leading axis, as numpy: in a multi-process run each
     process gathers the others' too; whether the step budget stopped the run on any device).
     """
+    # once per run, on the parameters, before anything is compiled: values that bypassed the scene's
+    # eager checks (eqx.tree_at, a fit's step) raise here. The scene is concrete (the fingerprint
+    # reads it); a check inside the sharded program would abort the process on a multi-device CPU.
+    scene = kernel.checked(scene)
     devices = tuple(jax.devices() if devices is None else devices)
     devices = devices[: min(len(devices), photons)]
     ndev = len(devices)
@@ -312,7 +321,7 @@ def _normalise(acc: _Acc, photons: int, scene: Scene, tallies: TallySpec, option
         photons=photons, tallies=tallies, options=options,
         rsp=a.rsp / n, rd=mean[0], a=mean[1], tt=mean[2],
         rd_stderr=stderr[0], a_stderr=stderr[1], tt_stderr=stderr[2],
-        roulette=mean[3], roulette_stderr=stderr[3], steps=a.steps, budget_exhausted=exhausted,
+        roulette=mean[3], roulette_stderr=stderr[3], steps=a.steps, outcome=Outcome.BUDGET_EXHAUSTED if exhausted else Outcome.SUCCESSFUL,
         path_stats=path_stats,
         **{k: v for k, v in out.items()},
     )
