@@ -591,6 +591,33 @@ def test_every_subcommand_refuses_an_out_it_cannot_write_in_one_line(tmp_path, c
     assert ("exists and is not a folder" if where == "file" else f"{tmp_path / 'taken'} is a file") in err
 
 
+@pytest.mark.parametrize("command, name", [
+    (["simulate", PAPER], "paper_tissue.json"), (["simulate", MCI], "sample.mco"),
+    (["render", LESION], "preview.png"), (["compare", MEASURED_EXAMPLE, MEASURED_EXAMPLE], "compare.png"),
+    (["synthesize", FIT_DEMO], "measured.json"),
+    (["fit", MEASURED_EXAMPLE, "--scene", FIT_DEMO, "--free", "blood_fraction"], "fit.json")],
+    ids=lambda c: c if isinstance(c, str) else c[0])
+def test_a_folder_where_an_output_file_goes_is_refused_before_the_run(tmp_path, capsys, monkeypatch, command, name):
+    """Issue 25, tried by hand: `out/preview.png` being a folder failed after the whole render, with an
+    error naming a temporary file (".preview.png.7f2caa5b.tmp: Is a directory; nothing was written")
+    although the stack had been written."""
+    monkeypatch.setattr(_simulate, "trace", lambda *a, **k: pytest.fail("traced before checking --out"))
+    monkeypatch.setattr(_render, "render", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    out = tmp_path / "out"
+    (out / name).mkdir(parents=True)
+    assert cli.main([*command, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"tissuefit: error: --out {out}: {out / name} is a folder; the command writes the file {name} there\n"
+
+
+def test_an_mco_named_by_the_mci_that_is_a_folder_is_refused_before_the_run(tmp_path, capsys, monkeypatch, fake):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sample.mco").mkdir()
+    assert cli.main(["simulate", MCI, "--photons", "10"]) == 2
+    assert "sample.mco is a folder; the command writes the file sample.mco there" in capsys.readouterr().err
+    assert fake.calls == []
+
+
 def test_checkpoint_that_is_a_file_is_refused(tmp_path, capsys, fake):
     (tmp_path / "ck").write_text("x")
     assert cli.main(["simulate", PAPER, "--checkpoint", str(tmp_path / "ck")]) == 2

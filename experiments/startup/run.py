@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -68,14 +69,18 @@ def commands(quick: bool) -> list[dict]:
     return rows
 
 
-def timed(argv: list[str], env: dict, cwd: Path) -> float:
-    """Wall time [s] of one run of `argv`; a failing command stops the experiment with its stderr."""
+def timed(argv: list[str], env: dict, cwd: Path) -> tuple[float, float]:
+    """(wall, CPU) time [s] of one run of `argv`, CPU = user + system of the child (on a shared machine
+    the wall time grows with the others' load, the CPU time much less); a failing command stops the
+    experiment with its stderr."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     done = subprocess.run(argv, env=env, cwd=cwd, capture_output=True, text=True)
     seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed ({done.returncode}):\n{done.stderr[-2000:]}")
-    return seconds
+    return seconds, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def cache_size(folder: Path) -> tuple[int, int]:
@@ -92,18 +97,25 @@ def measure(row: dict, cold: int, warm: int, scratch: Path) -> dict:
         extra = ["--out", str(scratch / "out" / tag)] if row["out"] else []
         return base + row["args"] + extra
 
-    cold_s, warm_s, entries = [], [], (0, 0)
-    cache = None
+    cold_s, warm_s, cold_cpu, warm_cpu, entries = [], [], [], [], (0, 0)
+    loads = [os.getloadavg()[0]]
     for i in range(cold):
         cache = Path(tempfile.mkdtemp(prefix="cache-", dir=scratch))
         env["TISSUEFIT_CACHE_DIR"] = str(cache)
-        cold_s.append(timed(argv(f"cold{i}"), env, ROOT))
+        wall, cpu = timed(argv(f"cold{i}"), env, ROOT)
+        cold_s.append(wall)
+        cold_cpu.append(cpu)
         entries = cache_size(cache)
+        loads.append(os.getloadavg()[0])
     for i in range(warm):
-        warm_s.append(timed(argv(f"warm{i}"), env, ROOT))
-    result = dict(label=row["label"], args=row["args"], cold_s=cold_s, warm_s=warm_s,
-                  cold_median_s=statistics.median(cold_s), warm_median_s=statistics.median(warm_s),
-                  cache_entries=entries[0], cache_bytes=entries[1])
+        wall, cpu = timed(argv(f"warm{i}"), env, ROOT)
+        warm_s.append(wall)
+        warm_cpu.append(cpu)
+        loads.append(os.getloadavg()[0])
+    result = dict(label=row["label"], args=row["args"], cold_s=cold_s, warm_s=warm_s, cold_cpu_s=cold_cpu,
+                  warm_cpu_s=warm_cpu, cold_median_s=statistics.median(cold_s), warm_median_s=statistics.median(warm_s),
+                  cold_cpu_median_s=statistics.median(cold_cpu), warm_cpu_median_s=statistics.median(warm_cpu),
+                  load_1min=loads, cache_entries=entries[0], cache_bytes=entries[1])
     mcml = shutil.which("mcml")
     if row.get("mcml"):
         if mcml is None:
@@ -111,7 +123,7 @@ def measure(row: dict, cold: int, warm: int, scratch: Path) -> dict:
         else:
             with tempfile.TemporaryDirectory(dir=scratch) as where:
                 shutil.copy(ROOT / row["mcml"], where)
-                times = [timed([mcml, Path(row["mcml"]).name], env, Path(where)) for _ in range(max(1, warm))]
+                times = [timed([mcml, Path(row["mcml"]).name], env, Path(where))[0] for _ in range(max(1, warm))]
             result["mcml"] = statistics.median(times)
     return result
 
@@ -121,14 +133,17 @@ def spread(values: list[float]) -> str:
 
 
 def table(results: list[dict]) -> str:
-    lines = ["| command | first run, cold cache [s] | repeated run, warm cache: median (range) [s] | speed-up "
-             "| cache written | MCML [s] |", "|---|---|---|---|---|---|"]
+    lines = ["| command | first run, cold cache: wall [s] | repeated run, warm cache: wall, median (range) [s] "
+             "| wall speed-up | CPU [s], first → repeated (median) | cache written | 1-min load during | MCML [s] |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in results:
         mcml = r.get("mcml", "–")
         mcml = f"{mcml:.2f}" if isinstance(mcml, float) else ("not available" if mcml != "–" else "–")
         cache = f"{r['cache_entries']} files, {r['cache_bytes'] / 2**20:.1f} MiB" if r["cache_entries"] else "none"
         lines.append(f"| {r['label']} | {spread(r['cold_s'])} | {r['warm_median_s']:.2f} ({spread(r['warm_s'])}) "
-                     f"| {r['cold_median_s'] / r['warm_median_s']:.1f}x | {cache} | {mcml} |")
+                     f"| {r['cold_median_s'] / r['warm_median_s']:.1f}x "
+                     f"| {r['cold_cpu_median_s']:.2f} → {r['warm_cpu_median_s']:.2f} | {cache} "
+                     f"| {min(r['load_1min']):.1f}–{max(r['load_1min']):.1f} | {mcml} |")
     return "\n".join(lines)
 
 
@@ -151,7 +166,8 @@ def main() -> None:
         for row in commands(args.quick):
             results.append(measure(row, args.cold, args.warm, Path(scratch)))
             r = results[-1]
-            print(f"{r['label']}: cold {spread(r['cold_s'])} s, warm median {r['warm_median_s']:.2f} s", flush=True)
+            print(f"{r['label']}: cold {spread(r['cold_s'])} s, warm median {r['warm_median_s']:.2f} s (CPU "
+                  f"{r['cold_cpu_median_s']:.2f} -> {r['warm_cpu_median_s']:.2f} s)", flush=True)
     load_end = os.getloadavg()
     print(table(results))
     if args.quick:

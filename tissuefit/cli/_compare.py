@@ -69,7 +69,7 @@ def selected_bands(text: str | None, wavelengths: np.ndarray) -> list[int] | Non
 
 
 def run(args) -> int:
-    out = out_folder(args.out)
+    out = out_folder(args.out, files=("compare.json", "compare.png"))
     try:
         sim = io.read_stack(args.sim)
         measured = io.read_measured(args.measured)

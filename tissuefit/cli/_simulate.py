@@ -164,16 +164,19 @@ def mco_note(path: Path, folder_given: bool) -> str:
 
 def run(args) -> int:
     runs = [resolve(r, args) for r in load(args.scene)]
+    stems = io.file_stems(r.name for r in runs)
     if args.out is not None:
-        out_folder(args.out)
+        names = [f"{stem}.json" for stem in stems] + ([f"{stem}.png" for stem in stems] if args.plot else [])
+        names += [Path(r.mco_output).name for r in runs if isinstance(r, io.Run) and r.mco_output is not None]
+        out_folder(args.out, files=names)
     if args.checkpoint is not None:
-        out_folder(args.checkpoint, "--checkpoint")
+        out_folder(args.checkpoint, "--checkpoint", files=[f"{stem}.state.npz" for stem in stems])
     if args.out is None:
         # MCML writes the .mco file an .mci names (relative to the current folder); so do we
         for r in runs:
             if isinstance(r, io.Run) and r.mco_output is not None:
-                out_folder(Path(r.mco_output).parent, f"{args.scene}: the .mco file {r.mco_output!r}: its folder")
-    stems = io.file_stems(r.name for r in runs)
+                mco = Path(r.mco_output)
+                out_folder(mco.parent, f"{args.scene}: the .mco file {r.mco_output!r}: its folder", files=[mco.name])
     records = []
     for r, stem in zip(runs, stems):
         start = time.perf_counter()
