@@ -766,3 +766,18 @@ def test_a_real_ctrl_c_exits_130_in_one_line(tmp_path, after_s):
     assert process.returncode == 130, err
     assert err.strip().splitlines()[-1] == "tissuefit: interrupted; nothing was written"
     assert "Traceback" not in err and "Exception ignored" not in err
+
+
+def test_the_summary_after_a_resume_says_what_the_rate_counts():
+    """Issue 25, item 10 tried by hand: after a resume the record's rate counts only the photons traced
+    now (2e6 of 3e6 in 25.3 s: 79,045 photons/s), but the line read "3000000 photons in 25.3 s
+    (79,045 photons/s)", which a reader divides to 118,000."""
+    record = dict(name="paper_tissue", source_file="p.toml", photons=3_000_000, seconds=25.3, seed=1,
+                  photons_per_second=2_000_000 / 25.3, resumed_photons=1_000_000,
+                  rsp=0.002, rd=0.06, a=0.93, tt=0.0)
+    first = _simulate.summary(record).splitlines()[0]
+    assert first == ("paper_tissue (p.toml): 3000000 photons (1000000 resumed from the checkpoint, 2000000 traced "
+                     "now) in 25.3 s (79,051 photons/s traced now), seed 1")
+    del record["resumed_photons"]
+    assert _simulate.summary(record).splitlines()[0] == \
+        "paper_tissue (p.toml): 3000000 photons in 25.3 s (79,051 photons/s), seed 1"

@@ -40,8 +40,8 @@ def table(report: dict, files: list) -> str:
     for row in report["bands"]:
         if row.get("resampled_from"):
             parts = " + ".join(f"{r['weight']:.3g} x {r['sim_wavelength_nm']:g} nm" for r in row["resampled_from"])
-            lines.append(f"  measured {row['wavelength_nm']:g} nm is not a simulated band: compared with {parts} "
-                         "(its band response integrated over the simulated bands)")
+            lines.append(f"  measured {row['wavelength_nm']:g} nm does not match a simulated band in centre and width: "
+                         f"compared with {parts} (its band response integrated over the simulated bands)")
     for extra in report["unmatched_bands"]:
         lines.append(f"  measured band {extra['band']} ({extra['wavelength_nm']:g} nm) has no simulated band "
                      f"(nearest {extra['nearest_sim_nm']:g} nm) and {extra['reason']}: NOT compared")
