@@ -240,7 +240,8 @@ def _fit_parser(commands) -> None:
     fit.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for fit.json and fit.png")
     fit.add_argument("--photons", type=int, metavar="N", help="photons per render (overrides [render])")
     fit.add_argument("--approach-photons", type=int, metavar="N",
-                     help="photons per render until the first settled step (default a quarter of --photons)")
+                     help="photons per render until the first settled step (default a quarter of --photons, "
+                          "at least 10000 and at most --photons)")
     fit.add_argument("--seed", type=int, metavar="S", help="the fit's PRNG seed (default: the scene's render.seed, "
                                                            f"then run.seed, else {DEFAULT_SEED})")
     fit.add_argument("--batches", type=int, metavar="B", default=16,
