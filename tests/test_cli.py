@@ -807,3 +807,12 @@ def test_the_command_leaves_at_once_after_ctrl_c_and_a_caller_gets_130_back(tmp_
         cli.main()
     assert exits == [130] and capsys.readouterr().err.strip() == "tissuefit: interrupted; nothing was written"
     assert cli.main(["simulate", PAPER]) == 130 and exits == [130]
+
+
+def test_plot_without_out_is_refused_instead_of_ignored(fake, capsys):
+    """Tried by hand (issue 25): `tissuefit simulate SCENE --plot` without --out traced, printed the
+    tallies and wrote no plot, without a word."""
+    assert cli.main(["simulate", PAPER, "--plot"]) == 2
+    assert capsys.readouterr().err == ("tissuefit: error: --plot writes <name>.png beside the run's record in the "
+                                       "--out folder; give --out DIR\n")
+    assert fake.calls == []

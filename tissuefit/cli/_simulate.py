@@ -172,6 +172,8 @@ def mco_note(path: Path, folder_given: bool) -> str:
 
 
 def run(args) -> int:
+    if args.plot and args.out is None:
+        raise InvalidInput("--plot writes <name>.png beside the run's record in the --out folder; give --out DIR")
     runs = [resolve(r, args) for r in load(args.scene)]
     stems = io.file_stems(r.name for r in runs)
     if args.out is not None:
