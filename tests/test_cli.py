@@ -591,6 +591,33 @@ def test_every_subcommand_refuses_an_out_it_cannot_write_in_one_line(tmp_path, c
     assert ("exists and is not a folder" if where == "file" else f"{tmp_path / 'taken'} is a file") in err
 
 
+@pytest.mark.parametrize("command, name", [
+    (["simulate", PAPER], "paper_tissue.json"), (["simulate", MCI], "sample.mco"),
+    (["render", LESION], "preview.png"), (["compare", MEASURED_EXAMPLE, MEASURED_EXAMPLE], "compare.png"),
+    (["synthesize", FIT_DEMO], "measured.json"),
+    (["fit", MEASURED_EXAMPLE, "--scene", FIT_DEMO, "--free", "blood_fraction"], "fit.json")],
+    ids=lambda c: c if isinstance(c, str) else c[0])
+def test_a_folder_where_an_output_file_goes_is_refused_before_the_run(tmp_path, capsys, monkeypatch, command, name):
+    """Issue 25, tried by hand: `out/preview.png` being a folder failed after the whole render, with an
+    error naming a temporary file (".preview.png.7f2caa5b.tmp: Is a directory; nothing was written")
+    although the stack had been written."""
+    monkeypatch.setattr(_simulate, "trace", lambda *a, **k: pytest.fail("traced before checking --out"))
+    monkeypatch.setattr(_render, "render", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    out = tmp_path / "out"
+    (out / name).mkdir(parents=True)
+    assert cli.main([*command, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"tissuefit: error: --out {out}: {out / name} is a folder; the command writes the file {name} there\n"
+
+
+def test_an_mco_named_by_the_mci_that_is_a_folder_is_refused_before_the_run(tmp_path, capsys, monkeypatch, fake):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sample.mco").mkdir()
+    assert cli.main(["simulate", MCI, "--photons", "10"]) == 2
+    assert "sample.mco is a folder; the command writes the file sample.mco there" in capsys.readouterr().err
+    assert fake.calls == []
+
+
 def test_checkpoint_that_is_a_file_is_refused(tmp_path, capsys, fake):
     (tmp_path / "ck").write_text("x")
     assert cli.main(["simulate", PAPER, "--checkpoint", str(tmp_path / "ck")]) == 2
@@ -730,7 +757,8 @@ def test_a_real_ctrl_c_exits_130_in_one_line(tmp_path, after_s):
     # the console script's call, with Python's own Ctrl-C handler installed even where the test runner
     # ignores SIGINT (a background job inherits that)
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            f"from tissuefit.cli import main; sys.exit(main(['simulate', {PAPER!r}, '--photons', '30000000']))")
+            f"sys.argv = ['tissuefit', 'simulate', {PAPER!r}, '--photons', '30000000']; "
+            "from tissuefit.cli import main; sys.exit(main())")
     process = subprocess.Popen([sys.executable, "-c", code], cwd=tmp_path, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     time.sleep(after_s)
@@ -739,3 +767,52 @@ def test_a_real_ctrl_c_exits_130_in_one_line(tmp_path, after_s):
     assert process.returncode == 130, err
     assert err.strip().splitlines()[-1] == "tissuefit: interrupted; nothing was written"
     assert "Traceback" not in err and "Exception ignored" not in err
+
+
+def test_the_summary_after_a_resume_says_what_the_rate_counts():
+    """Issue 25, item 10 tried by hand: after a resume the record's rate counts only the photons traced
+    now (2e6 of 3e6 in 25.3 s: 79,045 photons/s), but the line read "3000000 photons in 25.3 s
+    (79,045 photons/s)", which a reader divides to 118,000."""
+    record = dict(name="paper_tissue", source_file="p.toml", photons=3_000_000, seconds=25.3, seed=1,
+                  photons_per_second=2_000_000 / 25.3, resumed_photons=1_000_000,
+                  rsp=0.002, rd=0.06, a=0.93, tt=0.0)
+    first = _simulate.summary(record).splitlines()[0]
+    assert first == ("paper_tissue (p.toml): 3000000 photons (1000000 resumed from the checkpoint, 2000000 traced "
+                     "now) in 25.3 s (79,051 photons/s traced now), seed 1")
+    del record["resumed_photons"]
+    assert _simulate.summary(record).splitlines()[0] == \
+        "paper_tissue (p.toml): 3000000 photons in 25.3 s (79,051 photons/s), seed 1"
+
+
+def test_the_command_leaves_at_once_after_ctrl_c_and_a_caller_gets_130_back(tmp_path, capsys, monkeypatch):
+    """Tried by hand (issue 25, item 3): `timeout -s INT 10 tissuefit simulate ...` on an empty
+    compilation cache printed the interruption's line, then crashed in the interpreter's teardown about
+    one time in five ("pure virtual method called", exit status 134; once 139). The command (main()
+    without argv) now ends the process with 130 right after the line; a caller's main([...]) still
+    returns 130."""
+    import sys
+
+    from tissuefit.cli import _main
+
+    exits = []
+
+    def fake_exit(status):
+        exits.append(status)
+        raise SystemExit(status)
+
+    monkeypatch.setattr(_main.os, "_exit", fake_exit)
+    monkeypatch.setattr(_simulate, "trace", _interrupt)
+    monkeypatch.setattr(sys, "argv", ["tissuefit", "simulate", PAPER])
+    with pytest.raises(SystemExit):
+        cli.main()
+    assert exits == [130] and capsys.readouterr().err.strip() == "tissuefit: interrupted; nothing was written"
+    assert cli.main(["simulate", PAPER]) == 130 and exits == [130]
+
+
+def test_plot_without_out_is_refused_instead_of_ignored(fake, capsys):
+    """Tried by hand (issue 25): `tissuefit simulate SCENE --plot` without --out traced, printed the
+    tallies and wrote no plot, without a word."""
+    assert cli.main(["simulate", PAPER, "--plot"]) == 2
+    assert capsys.readouterr().err == ("tissuefit: error: --plot writes <name>.png beside the run's record in the "
+                                       "--out folder; give --out DIR\n")
+    assert fake.calls == []

@@ -167,3 +167,32 @@ def test_the_block_reader():
     assert [(b.kind, b.line) for b in blocks] == [("sh", 1), ("python", 9)]
     assert json.loads(blocks[0].code) == [["tissuefit", "simulate", "a.toml", "--photons", "10"]]
     assert blocks[1].code == "x = 1\n"
+
+
+def _synopsis_options(text: str) -> dict[str, set[str]]:
+    """The options each subcommand's line of the README's usage synopsis (the ```text block that
+    starts with `tissuefit [--no-cache] COMMAND ...`) names, comments left out."""
+    block = text.split("```text\ntissuefit [--no-cache] COMMAND ...\n", 1)[1].split("```", 1)[0]
+    found: dict[str, set[str]] = {}
+    command = None
+    for line in block.splitlines():
+        match = re.match(r"tissuefit (\w+) ", line)
+        if match:
+            command = match.group(1)
+        if command is not None and not line.lstrip().startswith("#"):
+            found.setdefault(command, set()).update(re.findall(r"--[a-z][a-z-]*", line.split("  #")[0]))
+    return found
+
+
+def test_the_usage_synopsis_names_exactly_the_parsers_options():
+    """Issue 25, item 6 tried by hand: the README's synopsis offered `fit --approach gauss-newton|solve`
+    and `--solver levenberg-marquardt|gauss-newton|bfgs`, which the parser (and fit()) no longer have,
+    and left out --batches and --binning."""
+    import argparse
+
+    from tissuefit.cli._main import parser
+
+    (subparsers,) = [a for a in parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    expected = {name: {o for a in sub._actions for o in a.option_strings if o.startswith("--") and o != "--help"}
+                for name, sub in subparsers.choices.items()}
+    assert _synopsis_options(README.read_text()) == expected

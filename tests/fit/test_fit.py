@@ -188,3 +188,24 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_landings():
     unsettled = tf.fit(measured, tissue([2.6, 0.8]), [MUA], endoscope=endo, key=jax.random.key(1), options=OPTIONS,
                        illumination=LIGHT, config=FitConfig(photons=1_000, max_retraces=1), throw=False)
     assert unsettled.outcome is tf.Outcome.NOT_CONVERGED and not unsettled.outcome.successful
+
+
+def test_the_report_says_what_ran_and_where_the_estimate_comes_from():
+    """Issue 25, item 6 (fit.json's "solver" said levenberg-marquardt when Gauss-Newton steps ran): the
+    report's "ran" counts the re-traces per phase and says whether the estimate is an average of
+    settled landing points or, for a fit that stopped early, the last trace point."""
+    from types import SimpleNamespace
+
+    from tissuefit.io._fitreport import fit_ran
+
+    def record(phase, photons):
+        return SimpleNamespace(phase=phase, photons=photons)
+
+    history = [record("approach", 25_000)] * 2 + [record("arrive", 100_000)] + [record("sample", 100_000)] * 4
+    done = SimpleNamespace(history=history, outcome=tf.Outcome.SUCCESSFUL, settings={"averaged": 4, "average": 4})
+    assert fit_ran(done) == {"retraces": 7, "retraces_by_phase": {"approach": 2, "arrive": 1, "sample": 4},
+                             "photons_by_phase": {"approach": 25_000, "arrive": 100_000, "sample": 100_000},
+                             "steps": "Gauss-Newton", "estimate": "the mean of 4 settled landing points"}
+    early = SimpleNamespace(history=history[:3], outcome=tf.Outcome.NOT_CONVERGED, settings={"averaged": 0, "average": 4})
+    assert fit_ran(early)["estimate"] == ("the last trace point (not converged: 0 of the 4 settled landing "
+                                          "points to average)")

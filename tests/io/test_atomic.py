@@ -58,3 +58,13 @@ def test_new_file_gets_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_a_folder_in_the_way_is_refused_before_writing_and_named(tmp_path):
+    """Issue 25, tried by hand: a folder where the file goes failed only at the rename, with an error
+    naming the temporary file (".preview.png.1a2b3c4d.tmp: Is a directory")."""
+    (tmp_path / "preview.png").mkdir()
+    with pytest.raises(IsADirectoryError) as caught:
+        write_text_atomic(tmp_path / "preview.png", "x")
+    assert caught.value.filename == str(tmp_path / "preview.png")
+    assert sorted(os.listdir(tmp_path)) == ["preview.png"]

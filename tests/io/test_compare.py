@@ -228,4 +228,8 @@ def test_cli_compares_every_band_of_the_bundled_example(tmp_path, capsys):
     report = json.loads((tmp_path / "o" / "compare.json").read_text())
     assert report["summary"]["bands_compared"] == 3 and report["summary"]["bands_dead"] == 1
     assert report["unmatched_bands"] == [] and len(report["bands"]) == 4
-    assert "measured 540 nm is not a simulated band: compared with 0.0625 x 528 nm + 0.562 x 544 nm" in printed
+    assert ("measured 540 nm does not match a simulated band in centre and width: compared with 0.0625 x 528 nm "
+            "+ 0.562 x 544 nm") in printed
+    # 416 nm is a simulated band's centre but 10 nm of its 16 (tried by hand: "416 nm is not a simulated band")
+    assert ("measured 416 nm does not match a simulated band in centre and width: compared with 0.625 x 416 nm"
+            in printed)

@@ -29,10 +29,11 @@ def check_seed(name: str, seed: int) -> int:
     return seed
 
 
-def out_folder(out: Path, option: str = "--out") -> Path:
+def out_folder(out: Path, option: str = "--out", files=()) -> Path:
     """A folder the command will write into (created only when writing), checked before any work:
-    refused when it exists and is not a folder, when a parent on its path is a file, or when the
-    nearest existing folder on its path is not writable."""
+    refused when it exists and is not a folder, when a parent on its path is a file, when the
+    nearest existing folder on its path is not writable, or when one of `files` (the names the
+    command writes in it) exists there as a folder (a run would fail only at its end)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InvalidInput(f"{option} {out}: exists and is not a folder")
@@ -45,6 +46,9 @@ def out_folder(out: Path, option: str = "--out") -> Path:
         raise InvalidInput(f"{option} {out}: {existing} is a file, not a folder")
     if existing.exists() and not os.access(existing, os.W_OK | os.X_OK):
         raise InvalidInput(f"{option} {out}: cannot write in {existing} (permission denied)")
+    for name in files:
+        if (out / name).is_dir():
+            raise InvalidInput(f"{option} {out}: {out / name} is a folder; the command writes the file {name} there")
     return out
 
 

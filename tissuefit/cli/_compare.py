@@ -40,8 +40,8 @@ def table(report: dict, files: list) -> str:
     for row in report["bands"]:
         if row.get("resampled_from"):
             parts = " + ".join(f"{r['weight']:.3g} x {r['sim_wavelength_nm']:g} nm" for r in row["resampled_from"])
-            lines.append(f"  measured {row['wavelength_nm']:g} nm is not a simulated band: compared with {parts} "
-                         "(its band response integrated over the simulated bands)")
+            lines.append(f"  measured {row['wavelength_nm']:g} nm does not match a simulated band in centre and width: "
+                         f"compared with {parts} (its band response integrated over the simulated bands)")
     for extra in report["unmatched_bands"]:
         lines.append(f"  measured band {extra['band']} ({extra['wavelength_nm']:g} nm) has no simulated band "
                      f"(nearest {extra['nearest_sim_nm']:g} nm) and {extra['reason']}: NOT compared")
@@ -69,7 +69,7 @@ def selected_bands(text: str | None, wavelengths: np.ndarray) -> list[int] | Non
 
 
 def run(args) -> int:
-    out = out_folder(args.out)
+    out = out_folder(args.out, files=("compare.json", "compare.png"))
     try:
         sim = io.read_stack(args.sim)
         measured = io.read_measured(args.measured)

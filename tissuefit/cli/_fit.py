@@ -40,7 +40,7 @@ def check_units(units: str, args) -> None:
 
 
 def run(args) -> int:
-    out = out_folder(args.out)
+    out = out_folder(args.out, files=("fit.json", "fit.png"))
     scene = render_run(args.scene)
     spec = scene.render or io.RenderSpec()
     seed = render_seed(args.seed, spec, scene)

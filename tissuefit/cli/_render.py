@@ -81,7 +81,8 @@ def render_with_progress(run, spec, seed: int, scene_file: str):
 def run(args) -> int:
     scene = render_run(args.scene)
     spec, seed = resolve_render(scene, args)
-    out = out_folder(args.out)
+    (stem,) = io.file_stems([scene.name])
+    out = out_folder(args.out, files=io.render_file_names(stem))
     result, seconds = render_with_progress(scene, spec, seed, args.scene)
     sidecar, files = io.write_render(out, scene, spec, result, seed=seed, seconds=seconds)
     args.partial.files += files

@@ -51,15 +51,26 @@ def resolve(run, args):
         raise InvalidInput(str(err)) from None
 
 
+def photons_line(record: dict) -> str:
+    """"N photons in T s (R photons/s)"; after a resume it says how many photons this run traced (the
+    rate's numerator) and how many came from the checkpoint."""
+    rate, resumed = record["photons_per_second"], record.get("resumed_photons", 0)
+    text = f"{record['photons']} photons"
+    if resumed:
+        text += f" ({resumed} resumed from the checkpoint, {record['photons'] - resumed} traced now)"
+    text += f" in {record['seconds']:.3g} s"
+    if rate:
+        text += f" ({rate:,.0f} photons/s" + (" traced now" if resumed else "") + ")"
+    return text
+
+
 def summary(record: dict) -> str:
     def pm(key):
         err = record.get(f"{key}_stderr")
         return f"{record[key]:.6g}" + (f" ± {err:.2g}" if err is not None else "")
 
-    rate = record["photons_per_second"]
     lines = [
-        f"{record['name']} ({record['source_file']}): {record['photons']} photons in {record['seconds']:.3g} s"
-        + (f" ({rate:,.0f} photons/s)" if rate else "") + f", seed {record['seed']}",
+        f"{record['name']} ({record['source_file']}): {photons_line(record)}, seed {record['seed']}",
         f"  rsp = {pm('rsp')}   specular reflectance",
         f"  rd  = {pm('rd')}   diffuse reflectance",
         f"  a   = {pm('a')}   absorbed fraction",
@@ -75,11 +86,9 @@ def spectral_summary(record: dict) -> str:
     def num(v, spec=".4g"):
         return "null" if v is None else format(v, spec)
 
-    rate = record["photons_per_second"]
     wl = record["bands"]["wavelength_nm"]
     lines = [
-        f"{record['name']} ({record['source_file']}): {record['photons']} photons in {record['seconds']:.3g} s"
-        + (f" ({rate:,.0f} photons/s)" if rate else "") + f", seed {record['seed']}; "
+        f"{record['name']} ({record['source_file']}): {photons_line(record)}, seed {record['seed']}; "
         f"{len(wl)} bands {wl[0]:g}–{wl[-1]:g} nm, mode {record['mode']}",
         f"  totals over bands: rsp = {num(record['rsp_total'], '.6g')}   "
         f"rd = {num(record['rd_total'], '.6g')} ± {num(record['rd_total_stderr'], '.2g')}   "
@@ -163,17 +172,22 @@ def mco_note(path: Path, folder_given: bool) -> str:
 
 
 def run(args) -> int:
+    if args.plot and args.out is None:
+        raise InvalidInput("--plot writes <name>.png beside the run's record in the --out folder; give --out DIR")
     runs = [resolve(r, args) for r in load(args.scene)]
+    stems = io.file_stems(r.name for r in runs)
     if args.out is not None:
-        out_folder(args.out)
+        names = [f"{stem}.json" for stem in stems] + ([f"{stem}.png" for stem in stems] if args.plot else [])
+        names += [Path(r.mco_output).name for r in runs if isinstance(r, io.Run) and r.mco_output is not None]
+        out_folder(args.out, files=names)
     if args.checkpoint is not None:
-        out_folder(args.checkpoint, "--checkpoint")
+        out_folder(args.checkpoint, "--checkpoint", files=[f"{stem}.state.npz" for stem in stems])
     if args.out is None:
         # MCML writes the .mco file an .mci names (relative to the current folder); so do we
         for r in runs:
             if isinstance(r, io.Run) and r.mco_output is not None:
-                out_folder(Path(r.mco_output).parent, f"{args.scene}: the .mco file {r.mco_output!r}: its folder")
-    stems = io.file_stems(r.name for r in runs)
+                mco = Path(r.mco_output)
+                out_folder(mco.parent, f"{args.scene}: the .mco file {r.mco_output!r}: its folder", files=[mco.name])
     records = []
     for r, stem in zip(runs, stems):
         start = time.perf_counter()

@@ -13,7 +13,7 @@ from ._main import InvalidInput
 def run(args) -> int:
     scene = render_run(args.scene)
     spec, seed = resolve_render(scene, args)
-    out = out_folder(args.out)
+    out = out_folder(args.out, files=("measured.tif", "measured.json"))
     wl = np.asarray(scene.scene.tissue.bands.wavelengths, np.float64)
     dead = []
     for nm in args.dead_band:

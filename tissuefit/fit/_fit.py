@@ -110,6 +110,14 @@ def fit(
       False returns the result with its `outcome`.
     - `progress`: called with each re-trace's `StepRecord`.
     Returns a `FitResult`.
+
+    How (`METHOD`, which `result.method` and fit.json's "method" report; README, "Fitting";
+    `tissuefit fit --help`): every re-trace renders by next-event estimation with fresh random
+    numbers and the image's path-replay derivatives, split into `config.batches` batches; a
+    Gauss-Newton step from U-statistics over pairs of batches (free of the derivative's own Monte
+    Carlo noise) moves the parameters, on `config.approach` photons until the first settled step,
+    then on `config.photons`; the estimate is the mean of `config.average` settled landing points,
+    and a final render at it gives the residuals and the uncertainties. There is no other solver.
     """
     endoscope = Endoscope() if endoscope is None else endoscope
     measured = _check_measurement(measured, tissue, endoscope)

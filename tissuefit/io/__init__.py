@@ -41,7 +41,7 @@ _EXPORTS = {
     "write_preview": "._preview",
     "Registration": "._preprocess", "calibrate": "._preprocess", "dead_bands": "._preprocess",
     "mask_dead_bands": "._preprocess", "prepare_measured": "._preprocess", "register_bands": "._preprocess",
-    "render_stack": "._renderfile", "write_render": "._renderfile",
+    "render_stack": "._renderfile", "write_render": "._renderfile", "render_file_names": "._renderfile",
     "synthetic_counts": "._synthetic", "synthetic_measurement": "._synthetic",
     "MAX_PHOTONS": "._run", "RenderSpec": "._run", "Run": "._run", "SpectralRun": "._run",
     "load_runs": "._scenefile", "read_scene": "._scenefile", "scene_from_dict": "._scenefile",
@@ -100,7 +100,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         write_contact_sheet as write_contact_sheet,
         write_preview as write_preview,
     )
-    from ._renderfile import render_stack as render_stack, write_render as write_render
+    from ._renderfile import render_file_names as render_file_names, render_stack as render_stack, write_render as write_render
     from ._report import (
         file_stems as file_stems,
         result_to_dict as result_to_dict,

@@ -44,15 +44,37 @@ def _clean(v):
     return v
 
 
+def fit_ran(result) -> dict:
+    """What this fit ran, beside the general `method`: its re-traces per phase ("approach", "arrive",
+    "sample"; tissuefit/fit/_solver.py), the photons of each phase, and where the estimate comes from:
+    the mean of the settled landing points when the fit converged, else the last trace point (a fit
+    stopped before `average` settled steps has averaged nothing)."""
+    phases: dict[str, int] = {}
+    photons: dict[str, int] = {}
+    for record in result.history:
+        phases[record.phase] = phases.get(record.phase, 0) + 1
+        photons.setdefault(record.phase, int(record.photons))
+    averaged = int(result.settings.get("averaged", 0))
+    if result.outcome.successful:
+        estimate = f"the mean of {averaged} settled landing points"
+    else:
+        estimate = (f"the last trace point (not converged: {averaged} of the "
+                    f"{result.settings.get('average')} settled landing points to average)")
+    return {"retraces": len(result.history), "retraces_by_phase": phases, "photons_by_phase": photons,
+            "steps": "Gauss-Newton", "estimate": estimate}
+
+
 def fit_report(result, *, extra: dict | None = None) -> dict:
     """The JSON-ready report of a fit (`tissuefit.fit.FitResult`): parameters with uncertainties,
-    correlations, per-band metrics, convergence history and outcome, settings, version (and `extra`,
+    correlations, per-band metrics, convergence history and outcome, the method and what of it ran
+    (`fit_ran`), settings, version (and `extra`,
     e.g. the scene). Non-finite numbers become null."""
     report = {
         "converged": result.outcome.successful,  # the report file's keys, from the one outcome
         "reason": result.outcome.value,
         "outcome": result.outcome.name.lower(),
         "method": result.method,
+        "ran": fit_ran(result),
         "parameters": [{"name": n, "value": float(v), "uncertainty": float(s), "statistical": float(a),
                         "simulation": float(b)}
                        for n, v, s, a, b in zip(result.names, result.values, result.uncertainties,

@@ -6,7 +6,12 @@ sidecar's `illumination.band_power` below 1e-3 of its largest band: under the vi
 everything above ~440 nm is fluorescence), and `"true_colour"` otherwise (white light, measured
 stacks without the lights' spectrum).
 
-`"pdd"`, what a photodynamic-diagnosis camera shows: a three-chip camera whose dichroic prism
+`"pdd"`, what a photodynamic-diagnosis camera shows. PDD systems (Karl Storz D-Light and the like)
+light the tissue with blue-violet light and view it through a long-pass observation filter that
+blocks most of that light (the scene's `[render.observation_filter]`): the mucosa looks blue to
+blue-green (the filter's leak of violet remission, and autofluorescence), a PpIX lesion glows red
+to pink (its red fluorescence added to the blue of the tissue it sits in). The model is a
+three-chip camera whose dichroic prism
 splits the light at 500 and 590 nm. Its blue, green and red channels are the sums of the bands
 whose centres fall below 500 nm, in 500–590 nm and at or above 590 nm. Blue and green (the
 tissue: the violet light the observation filter lets through, autofluorescence) share one
@@ -18,10 +23,13 @@ fluorescence shows next to the much brighter remission. So that a red holding on
 PpIX: the red end of collagen's emission) is not blown up into a lesion, the red gain is at most
 30 times the blue-green gain. Then clip, sRGB transfer function, 8 bits. Its colours are not the
 eye's (the contact sheet gives the levels), and it is made for PpIX: a fluorophore emitting below
-590 nm is shown at the tissue's exposure. (Checked on the lesion scene,
-data_spec/examples/paper_lesion_render.toml, at 128 x 128 pixels and 1e5 photons: blue mucosa, a
-red polyp; the true-colour preview of the same stack is teal speckle of collagen fluorescence, the
-polyp's red at a tenth of the speckle's peaks.)
+590 nm is shown at the tissue's exposure. (Looked at on the lesion scene,
+data_spec/examples/paper_lesion_render.toml, as `make demo` renders it, 128 x 128 pixels and 1e5
+photons: smooth blue to teal mucosa, brightest where the lights fall, two small blue specular
+highlights of the lights, and the polyp at the centre glowing pink-red (mean R, G, B 251, 108, 188
+in it, 59, 99, 157 over the image); at 32 x 32 and 2e4 photons the same. The true-colour preview of
+the same stack is teal speckle of collagen fluorescence, the polyp's red at a tenth of the
+speckle's peaks: under the PDD light, "true colour" hides the lesion.)
 
 `"true_colour"`, through the CIE 1931 observer, in five steps:
 
@@ -215,20 +223,35 @@ def write_preview(path, stack: SpectralStack, *, percentile: float | None = None
 
 
 def contact_sheet_png(stack: SpectralStack, *, scale: str = "band", title: str | None = None) -> bytes:
-    """The PNG (bytes) of a contact sheet: one panel per band, titled with its centre wavelength
-    and the top of its colour scale.
+    """The PNG (bytes) of a contact sheet: one panel per band, titled with its centre wavelength,
+    each with a colour bar in the stack's units.
 
-    `scale="band"` (default): each panel from 0 to its own 99.5th percentile (faint fluorescence
-    bands show their structure; compare levels by the numbers in the titles); `"common"`: every
-    panel from 0 to the 99.5th percentile of the whole stack. Greyscale ("gray"), row 0 at the top,
-    pixels square. Text chunks as for `preview_png`.
+    `scale="band"` (default): each panel from 0 to its own 99.5th percentile, with its own colour
+    bar (faint fluorescence bands show their structure; the bars give the levels); `"common"`:
+    every panel from 0 to the 99.5th percentile of the whole stack, one colour bar for all.
+    Greyscale ("gray"), row 0 at the top, pixels square. The figure's title and the colour bars
+    name the units (the sidecar's `units`). Text chunks as for `preview_png`.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
     import io
 
     import matplotlib.pyplot as plt
+
+    fig = _contact_sheet_figure(stack, scale=scale, title=title)
+    try:
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=110, metadata=_png_text(stack, "contact sheet of the bands"))
+    finally:
+        plt.close(fig)
+    return buffer.getvalue()
+
+
+def _contact_sheet_figure(stack: SpectralStack, *, scale: str, title: str | None):
+    """The matplotlib figure of `contact_sheet_png` (the caller closes it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter
 
     if scale not in ("band", "common"):
         raise ValueError(f"contact sheet scale = {scale!r}; allowed 'band' or 'common'")
@@ -236,27 +259,34 @@ def contact_sheet_png(stack: SpectralStack, *, scale: str = "band", title: str |
     bands, height, width = data.shape
     columns = min(bands, 7 if bands > 12 else 4 if bands > 4 else bands)
     rows = math.ceil(bands / columns)
-    panel = 2.0
+    panel = 2.3
     aspect = height / width
-    fig, axes = plt.subplots(rows, columns, figsize=(panel * columns, panel * aspect * rows + 0.6 * rows + 0.5),
-                             squeeze=False)
+    fig, axes = plt.subplots(rows, columns, figsize=(panel * columns + (0.9 if scale == "common" else 0.0),
+                                                     2.0 * aspect * rows + 0.6 * rows + 0.7), squeeze=False,
+                             layout="constrained")
     common = _top(data)
+    shown = None
     for b, ax in enumerate(axes.flat):
         ax.set_axis_off()
         if b >= bands:
             continue
         top = _top(data[b]) if scale == "band" else common
-        ax.imshow(data[b], cmap="gray", vmin=0.0, vmax=top if top > 0 else 1.0, interpolation="nearest")
-        ax.set_title(f"{stack.wavelengths[b]:g} nm\n0–{top:.3g}", fontsize=7)
+        top = top if top > 0 else 1.0
+        shown = ax.imshow(data[b], cmap="gray", vmin=0.0, vmax=top, interpolation="nearest")
+        ax.set_title(f"{stack.wavelengths[b]:g} nm ({stack.widths[b]:g} nm wide)", fontsize=7)
+        if scale == "band":  # the band's own bar, ticks at 0, half and the top
+            bar = fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.03, ticks=[0.0, top / 2, top])
+            bar.ax.yaxis.set_major_formatter(FormatStrFormatter("%.2g"))
+            bar.ax.tick_params(labelsize=6)
+    if scale == "common" and shown is not None:
+        bar = fig.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.02, pad=0.02)
+        bar.ax.tick_params(labelsize=7)
+        bar.set_label(stack.units, fontsize=7)
     fig.suptitle((title + "\n" if title else "") + f"{stack.units}; "
-                 + ("each band on its own scale" if scale == "band" else "one scale for all bands"), fontsize=8)
-    fig.tight_layout()
-    try:
-        buffer = io.BytesIO()
-        fig.savefig(buffer, format="png", dpi=110, metadata=_png_text(stack, "contact sheet of the bands"))
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
+                 + ("each band on its own scale (0 to its 99.5th percentile), its colour bar beside it"
+                    if scale == "band" else f"one scale for all bands (0 to {common:.3g}, the stack's 99.5th "
+                                            "percentile)"), fontsize=8)
+    return fig
 
 
 def _top(values: np.ndarray) -> float:

@@ -90,6 +90,11 @@ def render_stack(run: SpectralRun, spec: RenderSpec, result, *, seed: int, secon
     )
 
 
+def render_file_names(stem: str) -> tuple[str, ...]:
+    """The names of the files `write_render` writes for a run whose file stem is `stem`."""
+    return (f"{stem}.tif", f"{stem}.json", "preview.png", "bands.png")
+
+
 def write_render(folder, run: SpectralRun, spec: RenderSpec, result, *, seed: int, seconds: float
                  ) -> tuple[dict, list[Path]]:
     """Write a render's files into `folder` (created), as `tissuefit render` does:
