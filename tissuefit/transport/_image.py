@@ -108,7 +108,7 @@ def trace_image(
     spectral: SpectralOptions = SpectralOptions(),
     splits: int = 1,
     site_rate: float = 0.1,
-    lobe: bool = False,
+    lobe: bool = True,
     generations: int = 3,
     chunk_photons: int = CHUNK_PHOTONS,
     progress=None,

@@ -89,7 +89,7 @@ class ImageSpec(eqx.Module):
     site_rate: float = eqx.field(static=True, default=0.1)
     tangents: int = eqx.field(static=True, default=0)
     from_sites: bool = eqx.field(static=True, default=False)
-    lobe: bool = eqx.field(static=True, default=False)
+    lobe: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if not isinstance(self.camera, PinholeCamera):
