@@ -152,3 +152,24 @@ def test_camera_lobe_keeps_the_image_with_a_region_and_two_layers():
     z = (a.mean(0) - b.mean(0)) / np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
     assert np.all(np.abs(z) < 4.5), z
     assert b.mean(0)[1, 0] > 0.05 * b.mean(0)[0, 0]  # the fluorescence shows
+
+
+def test_shared_paths_score_the_same_image_as_one_band_per_photon():
+    """White light on two bands of very different mua: shared paths (a carrier band's path, every
+    band's weight by its likelihood ratio) and one band per photon give the same image. At a
+    vertex each band's weight needs its own interaction density (mut_k / mut_carrier): without it
+    the shared image was darker where mua is high (the violet, under blood) and brighter where it
+    is low: at 100 000 photons band 0's total read 0.036 +- 0.001 against 0.047 +- 0.002, band 1's
+    1.17 +- 0.06 against 0.99 +- 0.06."""
+    bands = tf.BandGrid.uniform(400, 416, 16)
+    absorber = tf.TabulatedAbsorber((380.0, 404.0, 412.0, 440.0), [40.0, 40.0, 0.5, 0.5], 1 / math.log(10))
+    optics = tf.LayerOptics([absorber], tf.ConstantScattering(30.0, 0.85))
+    tissue = tf.SpectralTissue([optics], n=[1.4], thickness=[math.inf], bands=bands)
+    camera = PinholeCamera(position=(0.0, 0.0, -1.0), axis=(0, 0, 1), x_axis=(1, 0, 0), y_axis=(0, 1, 0),
+                           half_width=0.08, width=6, height=6, batches=32)
+    scene = tf.SpectralScene(tissue, source=tf.FlatBeam(radius=0.3), spectrum=tf.FlatSpectrum())
+    a, b = (_blocks(trace_image(scene, camera, key=jax.random.key(seed), photons=200_000, lobe=False,
+                                spectral=tf.SpectralOptions(mode=mode)).batches)
+            for seed, mode in ((1, "shared"), (2, "per_band")))
+    z = (a.mean(0) - b.mean(0)) / np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
+    assert np.all(np.abs(z) < 4.5), z

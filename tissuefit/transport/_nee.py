@@ -221,11 +221,12 @@ def _values(props, spectrum_change, v: _Vertex, config: SpectralConfig):
     return value, emitted
 
 
-def _arriving(lanes, w, path, hits, medium, config: SpectralConfig, mask):
+def _arriving(lanes, w, path, hits, medium, config: SpectralConfig, mask, med):
     """The traced band weights [lanes, slots] of lanes arriving with carrier weight `w` and path
-    statistics (path, hits); 0 outside `mask`."""
+    statistics (path, hits) at an interaction in medium `med`, each band's under its own interaction
+    density (`band_weights(arrival=...)`: `_values` scatters mus_k / mut_k of it); 0 outside `mask`."""
     if config.shared:
-        w0 = band_weights(w, lanes.spectrum, path, hits, lanes.band, medium)
+        w0 = band_weights(w, lanes.spectrum, path, hits, lanes.band, medium, arrival=med)
     else:
         w0 = jax.nn.one_hot(slot_index(config, lanes.band), config.slots, dtype=w.dtype) * w[:, None]
     return jnp.where(mask[:, None], w0, 0.0)
@@ -267,7 +268,7 @@ def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y,
     decision. Returns (acc, the connection's direction at the points: the camera lobe's axis)."""
     cam = config.image.camera
     conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
-    w0 = _arriving(lanes, lanes.w, path_in, lanes.hits, medium, config, interact)
+    w0 = _arriving(lanes, lanes.w, path_in, lanes.hits, medium, config, interact, med)
     cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
     vertex = _Vertex(w0=w0, path=path_in if config.tangents else None, hits=lanes.hits, score=lanes.score, med=med,
                      cos=cos, lengths=conn.lengths, factor=conn.factor, mis=lanes.mis)
@@ -315,7 +316,7 @@ def score_lobe(acc, lanes, medium, tissue, config: SpectralConfig, *, scatter, x
     xv, yv, zv_abs = x + vx * s, y + vy * s, z_abs + vz * s
     conn = connect(xv, yv, zv_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, config.image.camera,
                    medium.solid_angle)
-    w0 = _arriving(lanes, w, path_v, hits, medium, config, direct)
+    w0 = _arriving(lanes, w, path_v, hits, medium, config, direct, med)
     cos = vx * conn.direction[0] + vy * conn.direction[1] + vz * conn.direction[2]
     vertex = _Vertex(w0=w0, path=path_v if config.tangents else None, hits=hits, score=lanes.score, med=med, cos=cos,
                      lengths=conn.lengths, factor=conn.factor, pre=(None if emission else cos_p, density))

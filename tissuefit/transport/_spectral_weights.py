@@ -20,7 +20,7 @@ def _sample_index(cdf_rows: Array, xi: Array) -> Array:
     return jnp.minimum(k, cdf_rows.shape[1] - 1)
 
 
-def band_weights(w, spectrum, path, hits, carrier, medium: _Medium) -> Array:
+def band_weights(w, spectrum, path, hits, carrier, medium: _Medium, arrival=None) -> Array:
     """Shared paths: every band's weight [n, slots] from the carrier weight and the path statistics.
 
     The carrier of a path segment (since launch or the last conversion) is drawn with
@@ -36,6 +36,11 @@ def band_weights(w, spectrum, path, hits, carrier, medium: _Medium) -> Array:
     ratio of band c's path density to the carrier's. The weights are bounded (w_k <= W s_k r_k /
     (pi_k rho_k)), unlike the plain ratio W s_k r_k, whose variance is infinite once a band's mut
     is below half the carrier's. `carrier` [n] is the carrier slot.
+
+    `arrival` [n] (a medium index): the weights of a photon arriving at an interaction there, each
+    band's under its own interaction density: both r_k and rho_k gain the factor mut_k / mut_a of
+    the segment's end (the next-event estimate at the vertex scatters mus_k / mut_k of it). Without
+    it, the weights of a segment that ends without an interaction (escape).
     """
     log_r = jnp.zeros_like(spectrum)
     log_rho = jnp.zeros_like(spectrum)
@@ -44,6 +49,9 @@ def band_weights(w, spectrum, path, hits, carrier, medium: _Medium) -> Array:
         attenuation = l_m * medium.dmut[m][carrier]
         log_r = log_r + n_m * medium.log_ratio[m][carrier] - attenuation
         log_rho = log_rho + n_m * medium.log_mut_ratio[m][carrier] - attenuation
+        if arrival is not None:
+            end = jnp.where((arrival == m)[:, None], medium.log_mut_ratio[m][carrier], 0.0)
+            log_r, log_rho = log_r + end, log_rho + end
     # shift by the largest exponent so that the mixture's sum neither overflows nor underflows
     shift = jnp.max(log_rho, axis=1, keepdims=True)
     mixture = jnp.sum(spectrum * jnp.exp(log_rho - shift), axis=1, keepdims=True)
