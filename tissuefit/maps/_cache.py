@@ -70,6 +70,7 @@ def _load(path: Path, key: str) -> WhiteModel | None:
             return WhiteModel(g_nodes=tuple(meta["g_nodes"]), n_nodes=tuple(meta["n_nodes"]),
                               cos_edges=tuple(meta["cos_edges"]), photons=int(meta["photons"]),
                               a_floor=float(meta["a_floor"]), seed=int(meta["seed"]), grid=z["grid"],
+                              grid_spec=(float(z["grid"][0]), float(z["grid"][1] - z["grid"][0]), int(z["grid"].size)),
                               log_value=z["log_value"], log_slope=z["log_slope"], rel_variance=z["rel_variance"],
                               eps=z["eps"])
     except (OSError, ValueError, KeyError):

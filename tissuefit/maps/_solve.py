@@ -1,0 +1,258 @@
+"""`map`: per-pixel least squares against the white Monte Carlo model, vmapped and chunked.
+
+Per pixel, with free unconstrained coordinates x (the transforms of `tissuefit.fit`: log for
+coefficients, a logistic between bounds; docs/design.md §9) and a free log scale s (irradiance x
+calibration, on by default), the residual of band j is
+
+    r_j = (e^s rho_j(x) - y_j) / sqrt(var_j + (e^s rho_j se_rel,j)^2)      (0 where masked)
+
+with rho the model's reflectance in the pixel's viewing direction (`WhiteModel`), var the
+measurement's noise variance and se_rel the model's relative Monte Carlo error (held fixed
+within a step). Optimistix's Levenberg-Marquardt minimises sum r^2; `jax.vmap` runs it over a
+chunk of pixels, compiled once for a fixed chunk size. An optional smoothness prior adds
+(x_i - m_i) / tau per parameter, m the mean of the 4 neighbours' previous solution (one more pass
+per `passes`). Uncertainties: the covariance (J^T J)^-1 at the solution, mapped to the natural
+values by the transforms' derivatives (the delta method). Pixels are flagged, never filled:
+FLAG_SOLVER (optimistix did not report success), FLAG_BOUND (a value at its bound), FLAG_SINGULAR
+(J^T J not invertible or a value not finite), FLAG_MASKED (fewer usable bands than unknowns).
+`map_reference` solves pixel by pixel in a Python loop (the reference the vmapped path is tested
+against).
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._setup import float64
+from ._cache import model_for_tissue
+from ._model import WhiteModel, view_weights
+from ._result import MapResult
+from ._spectra import PixelSpectra, free_parameters
+
+FLAG_SOLVER, FLAG_BOUND, FLAG_SINGULAR, FLAG_MASKED = 1, 2, 4, 8
+FLAGS = {"solver": FLAG_SOLVER, "bound": FLAG_BOUND, "singular": FLAG_SINGULAR, "masked": FLAG_MASKED}
+
+
+class Problem(eqx.Module):
+    """What the per-pixel residual needs (static parts and small arrays)."""
+
+    spectra: PixelSpectra
+    white: WhiteModel
+    parameters: tuple = eqx.field(static=True)
+    n: float = eqx.field(static=True)
+    scale: bool = eqx.field(static=True)
+
+    def values(self, x):
+        vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
+        return jnp.stack(vals)
+
+    def model(self, x, view):
+        """(ln rho [bands], relative variance [bands]) at unconstrained x (scale excluded)."""
+        free = self.values(x)
+        mua, mus, g = self.spectra.properties(free)
+        return self.white.log_reflectance(mua, mus, g, self.n, view)
+
+    def residual(self, x, args):
+        y, var, use, view, prior_mean, prior_w = args
+        ly, rel = self.model(x, view)
+        log_s = x[-1] if self.scale else 0.0
+        pred = jnp.exp(log_s + ly)
+        sigma2 = var + jax.lax.stop_gradient(pred**2 * rel)
+        r = jnp.where(use, (pred - y) / jnp.sqrt(jnp.where(use, sigma2, 1.0)), 0.0)
+        return jnp.concatenate([r, (x - prior_mean) * prior_w])
+
+
+def _solve_one(problem: Problem, x0, args, max_steps: int, rtol: float, atol: float):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(problem.residual, solver, x0, args, max_steps=max_steps, throw=False)
+    x = sol.value
+    r = problem.residual(x, args)
+    jac = jax.jacfwd(problem.residual)(x, args)
+    jtj = jac.T @ jac
+    cov = jnp.linalg.inv(jtj)
+    dv = jax.jacfwd(lambda z: problem.values(z))(x)  # [P_free, P]
+    nat = problem.values(x)
+    if problem.scale:
+        nat = jnp.concatenate([nat, jnp.exp(x[-1:])])
+        dv = jnp.concatenate([dv, jnp.zeros((1, x.size)).at[0, -1].set(jnp.exp(x[-1]))])
+    sd = jnp.sqrt(jnp.maximum(jnp.einsum("ij,jk,ik->i", dv, cov, dv), 0.0))
+    y, var, use = args[0], args[1], args[2]
+    chi2 = jnp.sum(r[: y.size] ** 2)
+    ok = sol.result == optx.RESULTS.successful
+    return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov))
+
+
+def _chunk_solver(problem: Problem, max_steps: int, rtol: float, atol: float):
+    def run(x0, y, var, use, view, prior_mean, prior_w):
+        return jax.vmap(lambda *a: _solve_one(problem, a[0], a[1:], max_steps, rtol, atol))(
+            x0, y, var, use, view, prior_mean, prior_w)
+    return jax.jit(run)
+
+
+def _initial(problem: Problem, tissue, y, var, use, view) -> np.ndarray:
+    """Initial x per pixel: the tissue's values, and the least-squares scale for them."""
+    x_free = np.array([float(p.to_unconstrained(np.asarray(p.where(tissue)).reshape(-1)[0])) for p in problem.parameters])
+    if not problem.scale:
+        return np.broadcast_to(x_free, (y.shape[0], x_free.size)).copy()
+    ly, _ = jax.vmap(lambda v: problem.model(jnp.asarray(x_free), v))(jnp.asarray(view))
+    rho = np.exp(np.asarray(ly))
+    w = np.where(use, 1.0 / np.where(var > 0, var, np.inf), 0.0)
+    s = (w * y * rho).sum(1) / np.maximum((w * rho * rho).sum(1), 1e-300)
+    log_s = np.log(np.where(s > 0, s, np.nanmedian(np.where(s > 0, s, np.nan)) if np.any(s > 0) else 1.0))
+    return np.concatenate([np.broadcast_to(x_free, (y.shape[0], x_free.size)), log_s[:, None]], 1)
+
+
+def _neighbour_mean(x: np.ndarray, height: int, width: int, good: np.ndarray) -> np.ndarray:
+    """Mean of each pixel's 4 neighbours' x [H*W, P] among `good` pixels (itself where none is)."""
+    xs = x.reshape(height, width, -1)
+    ok = good.reshape(height, width, 1).astype(np.float64)
+    pad_x = np.pad(xs * ok, ((1, 1), (1, 1), (0, 0)))
+    pad_ok = np.pad(ok, ((1, 1), (1, 1), (0, 0)))
+    total = pad_x[:-2, 1:-1] + pad_x[2:, 1:-1] + pad_x[1:-1, :-2] + pad_x[1:-1, 2:]
+    count = pad_ok[:-2, 1:-1] + pad_ok[2:, 1:-1] + pad_ok[1:-1, :-2] + pad_ok[1:-1, 2:]
+    return np.where(count > 0, total / np.maximum(count, 1), xs).reshape(height * width, -1)
+
+
+def _as_measurement(measured):
+    from ..fit import Measurement
+
+    if isinstance(measured, Measurement):
+        return measured
+    from ..io import MeasuredStack, measurement
+
+    if isinstance(measured, MeasuredStack):
+        return measurement(measured)
+    raise TypeError(f"measured is a {type(measured).__name__}; allowed a tissuefit.fit.Measurement or a "
+                    "tissuefit.io.MeasuredStack")
+
+
+def setup(measured, model, free, *, white=None, scale=True, view=1.0):
+    """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs."""
+    from ..scene import SpectralTissue
+
+    m = _as_measurement(measured)
+    if not isinstance(model, SpectralTissue):
+        raise TypeError(f"model is a {type(model).__name__}; allowed a SpectralTissue (its top layer's spectral "
+                        "models and values: the per-pixel model and the initial guess)")
+    nb = model.bands.num_bands
+    if m.shape[0] != nb:
+        raise ValueError(f"measured has {m.shape[0]} bands; the model's band grid has {nb}")
+    if m.wavelengths is not None and not np.allclose(m.wavelengths, model.bands.wavelengths, atol=1e-6):
+        raise ValueError(f"measured wavelengths {m.wavelengths.tolist()} nm differ from the model's band centres "
+                         f"{model.bands.wavelengths.tolist()} nm")
+    if abs(float(model.geometry.n_above) - 1.0) > 1e-9:
+        raise ValueError(f"model.n_above = {float(model.geometry.n_above):g}; the white Monte Carlo model has air (1) above")
+    parameters = tuple(free_parameters(model, free))
+    white = model_for_tissue(model) if white is None else white
+    if not isinstance(white, WhiteModel):
+        raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
+    spectra = PixelSpectra(model, parameters)
+    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale))
+    _, height, width = m.shape
+    cos = np.broadcast_to(np.asarray(view, np.float64), (height, width)) if view is not None else None
+    vw = (view_weights(cos, white.cos_edges).reshape(height * width, -1) if cos is not None
+          else np.broadcast_to(view_weights(None, white.cos_edges), (height * width, white.num_views)))
+    return m, problem, np.ascontiguousarray(vw)
+
+
+@float64
+def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool = True, view=1.0,
+        smoothness: float | None = None, passes: int = 2, chunk: int = 4096, max_steps: int = 100,
+        rtol: float = 1e-6, atol: float = 1e-8, progress=None) -> MapResult:
+    """Per-pixel parameter maps of a measured stack (module docstring).
+
+    - `measured`: a `tissuefit.fit.Measurement` (data, noise variance, mask [bands, H, W]) or a
+      prepared `tissuefit.io.MeasuredStack` (it needs a noise model).
+    - `model`: a `SpectralTissue`: its top layer's spectral models are the per-pixel model, their
+      values the initial guess and the values of everything not free; g and n its white Monte
+      Carlo node.
+    - `free`: names of the top layer's coefficients (`blood_fraction`, `saturation` /
+      `blood_saturation`, `a`, `b`, `c_ppix`, `mua`, ...; tissuefit.fit names).
+    - `white`: a `WhiteModel` (default: `model_for_tissue(model)`, built once and cached on disk).
+    - `scale`: fit a per-pixel scale (irradiance x calibration; default on).
+    - `view`: cosine of each pixel's viewing angle against the surface normal, scalar or [H, W]
+      (default 1: looking straight down); None compares with the hemispherical reflectance.
+    - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
+      neighbours' mean (None: independent pixels); `passes` solves when it is on.
+    - `chunk`: pixels per vmapped solve (memory); `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
+    Returns a `MapResult`.
+    """
+    t0 = time.perf_counter()
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    nb, height, width = m.shape
+    npx = height * width
+    y = np.ascontiguousarray(m.data.reshape(nb, -1).T)
+    use = np.ascontiguousarray(m.mask.reshape(nb, -1).T)
+    var = np.ascontiguousarray(np.where(use, m.variance.reshape(nb, -1).T, 1.0))
+    y = np.where(use, y, 0.0)
+    x0 = _initial(problem, model, y, var, use, vw)
+    nx = x0.shape[1]
+    chunk = int(max(1, min(chunk, npx)))
+    solve = _chunk_solver(problem, int(max_steps), float(rtol), float(atol))
+    prior_w = np.zeros((npx, nx))
+    prior_mean = np.zeros((npx, nx))
+    npass = 1 if smoothness is None else max(1, int(passes))
+    for k in range(npass):
+        if k > 0:
+            prior_mean = _neighbour_mean(x, height, width, flags == 0)
+            prior_w = np.zeros((npx, nx))
+            prior_w[:, : len(problem.parameters)] = 1.0 / float(smoothness)
+        outs = []
+        for lo in range(0, npx, chunk):
+            sl = slice(lo, min(lo + chunk, npx))
+            pad = chunk - (sl.stop - sl.start)
+            args = [np.pad(a[sl], ((0, pad), (0, 0)), mode="edge") for a in (x0, y, var, use, vw, prior_mean, prior_w)]
+            res = solve(*[jnp.asarray(a) for a in args])
+            outs.append([np.asarray(r)[: sl.stop - sl.start] for r in res])
+            if progress is not None:
+                progress(sl.stop, npx)
+        nat, sd, x, chi2, nuse, ok, steps, finite = (np.concatenate(o) for o in zip(*outs))
+        flags = np.zeros(npx, np.uint8)
+        flags[~ok] |= FLAG_SOLVER
+        squashed = np.array([p._squashed() for p in problem.parameters] + ([False] if scale else []))
+        flags[np.any(squashed & (np.abs(x) > 20.0), 1)] |= FLAG_BOUND
+        flags[~finite | ~np.all(np.isfinite(nat), 1) | ~np.all(np.isfinite(sd), 1)] |= FLAG_SINGULAR
+        flags[nuse <= nx] |= FLAG_MASKED
+        x0 = x
+    names = [p.name.split(".", 1)[1] for p in problem.parameters] + (["scale"] if scale else [])
+    units = [p.units for p in problem.parameters] + (["(measured units)"] if scale else [])
+    dof = np.maximum(nuse - nx, 1)
+    return MapResult(names=tuple(names), units=tuple(units),
+                     values=nat.T.reshape(nx, height, width), sigma=sd.T.reshape(nx, height, width),
+                     flags=flags.reshape(height, width), chi2=chi2.reshape(height, width),
+                     residual_rms=np.sqrt(chi2 / np.maximum(nuse, 1)).reshape(height, width),
+                     reduced_chi2=(chi2 / dof).reshape(height, width), steps=steps.reshape(height, width),
+                     seconds=time.perf_counter() - t0,
+                     settings=dict(scale=bool(scale), smoothness=smoothness, passes=npass, chunk=chunk,
+                                   max_steps=int(max_steps), rtol=float(rtol), atol=float(atol),
+                                   white=dict(g_nodes=list(problem.white.g_nodes), n_nodes=list(problem.white.n_nodes),
+                                              photons=problem.white.photons, a_floor=problem.white.a_floor,
+                                              seed=problem.white.seed)))
+
+
+@float64
+def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, max_steps=100, rtol=1e-6, atol=1e-8):
+    """The reference: the same least squares, one pixel at a time (a Python loop of single-pixel
+    optimistix solves, no vmap, no chunks). Returns (values [P, H, W], sigma [P, H, W])."""
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    nb, height, width = m.shape
+    y = m.data.reshape(nb, -1).T
+    use = m.mask.reshape(nb, -1).T
+    var = np.where(use, m.variance.reshape(nb, -1).T, 1.0)
+    y = np.where(use, y, 0.0)
+    x0 = _initial(problem, model, y, var, use, vw)
+    nx = x0.shape[1]
+    vals, sds = [], []
+    one = jax.jit(lambda x, *a: _solve_one(problem, x, a, max_steps, rtol, atol))
+    for i in range(height * width):
+        out = one(jnp.asarray(x0[i]), jnp.asarray(y[i]), jnp.asarray(var[i]), jnp.asarray(use[i]),
+                  jnp.asarray(vw[i]), jnp.zeros(nx), jnp.zeros(nx))
+        vals.append(np.asarray(out[0]))
+        sds.append(np.asarray(out[1]))
+    return np.asarray(vals).T.reshape(nx, height, width), np.asarray(sds).T.reshape(nx, height, width)
