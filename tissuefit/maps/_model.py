@@ -115,9 +115,10 @@ class WhiteModel(eqx.Module):
         safe = np.where(pos, val, 1.0)
         return cls(g_nodes=tuple(float(g) for g in g_nodes), n_nodes=tuple(float(n) for n in n_nodes),
                    cos_edges=tuple(float(c) for c in cos_edges), photons=int(photons), a_floor=float(a_floor),
-                   seed=int(seed), grid_spec=(float(grid[0]), float(grid[1] - grid[0]), int(grid.size)), grid=grid, log_value=np.where(pos, np.log(safe), np.log(TINY)),
+                   seed=int(seed), grid_spec=(float(grid[0]), float(grid[1] - grid[0]), int(grid.size)), grid=grid,
+                   log_value=np.where(pos, np.log(safe), np.log(TINY)),
                    log_slope=np.where(pos, slope / safe * LN10, 0.0),
-                   rel_variance=np.where(pos, var / safe**2, 0.0),
+                   rel_variance=np.where(pos, var / safe / safe, 0.0),
                    eps=np.array([[t["eps"] for t in row] for row in tables]))
 
     @property
@@ -129,7 +130,7 @@ class WhiteModel(eqx.Module):
         u0, h, na = self.grid_spec
         u = jnp.clip(u, u0, u0 + h * (na - 1))
         k = jnp.clip(jnp.floor((u - u0) / h).astype(jnp.int32), 0, na - 2)
-        t = (u - (u0 + h * k)) / h
+        t = (u - (u0 + h * k.astype(u.dtype))) / h
         y = jnp.asarray(self.log_value[i, j])  # [V, A]
         d = jnp.asarray(self.log_slope[i, j])
         rv = jnp.asarray(self.rel_variance[i, j])
