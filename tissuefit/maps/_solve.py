@@ -21,6 +21,7 @@ against).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import equinox as eqx
@@ -88,16 +89,20 @@ def _solve_one(problem: Problem, x0, args, max_steps: int, rtol: float, atol: fl
     return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov))
 
 
-def _chunk_solver(problem: Problem, max_steps: int, rtol: float, atol: float):
-    def run(x0, y, var, use, view, prior_mean, prior_w):
-        return jax.vmap(lambda *a: _solve_one(problem, a[0], a[1:], max_steps, rtol, atol))(
-            x0, y, var, use, view, prior_mean, prior_w)
-    return jax.jit(run)
+@eqx.filter_jit
+def _solve_chunk(problem: Problem, x0, y, var, use, view, prior_mean, prior_w, *, max_steps: int, rtol: float,
+                 atol: float):
+    """One chunk of pixels: `_solve_one` vmapped. Compiled once per problem structure and chunk shape
+    (the tables and bases are traced arguments, so maps of other stacks reuse the program)."""
+    return jax.vmap(lambda *a: _solve_one(problem, a[0], a[1:], max_steps, rtol, atol))(
+        x0, y, var, use, view, prior_mean, prior_w)
 
 
 def _initial(problem: Problem, tissue, y, var, use, view) -> np.ndarray:
     """Initial x per pixel: the tissue's values, and the least-squares scale for them."""
-    x_free = np.array([float(p.to_unconstrained(np.asarray(p.where(tissue)).reshape(-1)[0])) for p in problem.parameters])
+    readers = free_parameters(tissue, problem.spectra.names)
+    x_free = np.array([float(p.to_unconstrained(np.asarray(r.where(tissue)).reshape(-1)[0]))
+                       for p, r in zip(problem.parameters, readers)])
     if not problem.scale:
         return np.broadcast_to(x_free, (y.shape[0], x_free.size)).copy()
     ly, _ = jax.vmap(lambda v: problem.model(jnp.asarray(x_free), v))(jnp.asarray(view))
@@ -117,6 +122,10 @@ def _neighbour_mean(x: np.ndarray, height: int, width: int, good: np.ndarray) ->
     total = pad_x[:-2, 1:-1] + pad_x[2:, 1:-1] + pad_x[1:-1, :-2] + pad_x[1:-1, 2:]
     count = pad_ok[:-2, 1:-1] + pad_ok[2:, 1:-1] + pad_ok[1:-1, :-2] + pad_ok[1:-1, 2:]
     return np.where(count > 0, total / np.maximum(count, 1), xs).reshape(height * width, -1)
+
+
+def _no_where(tissue):
+    raise AssertionError("maps: parameters are set through PixelSpectra, not tree_at")
 
 
 def _as_measurement(measured):
@@ -148,7 +157,9 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0):
                          f"{model.bands.wavelengths.tolist()} nm")
     if abs(float(model.geometry.n_above) - 1.0) > 1e-9:
         raise ValueError(f"model.n_above = {float(model.geometry.n_above):g}; the white Monte Carlo model has air (1) above")
-    parameters = tuple(free_parameters(model, free))
+    # `where` is only needed to read the initial values: a shared placeholder keeps the parameters
+    # equal between calls, so that maps with the same structure reuse one compiled solver
+    parameters = tuple(dataclasses.replace(p, where=_no_where) for p in free_parameters(model, free))
     white = model_for_tissue(model) if white is None else white
     if not isinstance(white, WhiteModel):
         raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
@@ -194,7 +205,6 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     x0 = _initial(problem, model, y, var, use, vw)
     nx = x0.shape[1]
     chunk = int(max(1, min(chunk, npx)))
-    solve = _chunk_solver(problem, int(max_steps), float(rtol), float(atol))
     prior_w = np.zeros((npx, nx))
     prior_mean = np.zeros((npx, nx))
     npass = 1 if smoothness is None else max(1, int(passes))
@@ -208,7 +218,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
             sl = slice(lo, min(lo + chunk, npx))
             pad = chunk - (sl.stop - sl.start)
             args = [np.pad(a[sl], ((0, pad), (0, 0)), mode="edge") for a in (x0, y, var, use, vw, prior_mean, prior_w)]
-            res = solve(*[jnp.asarray(a) for a in args])
+            res = _solve_chunk(problem, *[jnp.asarray(a) for a in args], max_steps=int(max_steps), rtol=float(rtol),
+                               atol=float(atol))
             outs.append([np.asarray(r)[: sl.stop - sl.start] for r in res])
             if progress is not None:
                 progress(sl.stop, npx)

@@ -58,8 +58,8 @@ class PixelSpectra(eqx.Module):
 
     names: tuple[str, ...] = eqx.field(static=True)
     """Free fields, in order (e.g. "blood_fraction")."""
-    fixed: dict = eqx.field(static=True)
-    """Every other field's value (floats)."""
+    fixed: tuple = eqx.field(static=True)
+    """Every other field's (name, value) (floats; a tuple, hashable: part of the compiled program's key)."""
     terms: tuple = eqx.field(static=True)
     """(kind, fields, basis index) per absorption term."""
     bases: np.ndarray
@@ -75,8 +75,8 @@ class PixelSpectra(eqx.Module):
         bands = tissue.bands
         table = {k.split(".", 1)[1]: p for k, p in scene_parameters(tissue).items() if k.startswith("layer0.")}
         self.names = tuple(p.name.split(".", 1)[1] for p in parameters)
-        self.fixed = {k: float(np.asarray(p.where(tissue)).reshape(-1)[0]) for k, p in table.items()
-                      if k not in self.names and np.asarray(p.where(tissue)).size == 1}
+        fixed = {k: float(np.asarray(p.where(tissue)).reshape(-1)[0]) for k, p in table.items()
+                 if k not in self.names and np.asarray(p.where(tissue)).size == 1}
         terms, bases = [], []
         n_const = n_tab = 0
         seen = set()
@@ -96,8 +96,8 @@ class PixelSpectra(eqx.Module):
                 short = {"protoporphyrin_ix": "ppix"}.get(ab.name, ab.name)
                 bases.append(np.asarray(ab.d * ab.specific_absorption))
                 terms.append(("linear", (f"c_{short}",), len(bases) - 1))
-                self.fixed.setdefault(f"c_{short}", float(np.asarray(ab.c)))
-                self.fixed.pop(f"c_{ab.name}", None)
+                fixed.setdefault(f"c_{short}", float(np.asarray(ab.c)))
+                fixed.pop(f"c_{ab.name}", None)
             elif isinstance(ab, ConstantAbsorption):
                 name = "mua" if n_const == 0 else f"mua{n_const}"
                 n_const += 1
@@ -128,13 +128,14 @@ class PixelSpectra(eqx.Module):
             self.scattering = "constant"
         else:
             raise ValueError(f"per-pixel maps: scattering {type(sc).__name__} is not covered by the per-pixel model")
+        self.fixed = tuple(sorted(fixed.items()))
         self.terms = tuple(terms)
         self.bases = np.asarray(bases, np.float64).reshape(len(bases), bands.num_bands)
         self.log_nodes = np.log(np.where(weights > 0, nodes, 500.0) / PowerLawScattering.REFERENCE_NM)
         self.weights = np.asarray(weights, np.float64)
 
     def value(self, free, name):
-        return free[self.names.index(name)] if name in self.names else self.fixed[name]
+        return free[self.names.index(name)] if name in self.names else dict(self.fixed)[name]
 
     def properties(self, free):
         """(mua [bands], mus [bands], g) of the top layer at the free values `free` [len(names)]."""
