@@ -30,6 +30,9 @@ def run(args) -> int:
         measured = io.read_measured(args.measured)
         measured = io.prepare_measured(measured, register=not args.no_register)
         measurement = io.measurement(measured)
+        if measurement.shape[0] != tissue.bands.num_bands:  # before the model is built
+            raise ValueError(f"measured has {measurement.shape[0]} bands; the model's band grid has "
+                             f"{tissue.bands.num_bands} ({args.scene})")
         _, _, g = tissue.properties()
         white = build_model((float(g[0, 0]),), (float(tissue.geometry.n[0]),), photons=args.model_photons,
                             seed=args.model_seed, progress=None if args.json else

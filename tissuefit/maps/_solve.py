@@ -83,7 +83,7 @@ def _solve_one(problem: Problem, x0, args, max_steps: int, rtol: float, atol: fl
         nat = jnp.concatenate([nat, jnp.exp(x[-1:])])
         dv = jnp.concatenate([dv, jnp.zeros((1, x.size)).at[0, -1].set(jnp.exp(x[-1]))])
     sd = jnp.sqrt(jnp.maximum(jnp.einsum("ij,jk,ik->i", dv, cov, dv), 0.0))
-    y, var, use = args[0], args[1], args[2]
+    y, use = args[0], args[2]
     chi2 = jnp.sum(r[: y.size] ** 2)
     ok = sol.result == optx.RESULTS.successful
     return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov))
@@ -208,6 +208,7 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     prior_w = np.zeros((npx, nx))
     prior_mean = np.zeros((npx, nx))
     npass = 1 if smoothness is None else max(1, int(passes))
+    x, flags = x0, np.zeros(npx, np.uint8)
     for k in range(npass):
         if k > 0:
             prior_mean = _neighbour_mean(x, height, width, flags == 0)
