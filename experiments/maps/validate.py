@@ -100,6 +100,7 @@ def main() -> None:
                options=RenderOptions(specular_deg=0.0, smoothing="none"))
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
+    np.savez_compressed(HERE / f"render_{args.width}px.npz", raw=raw, variance=rvar)  # for re-analysis (not committed)
     gain = args.peak_counts / raw.max()
     rng = np.random.default_rng(11)
     mean = raw * gain
@@ -143,7 +144,7 @@ def main() -> None:
     out = dict(machine=info, photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
                map_seconds=res.seconds, flagged=int((~good).sum()), median_snr=snr,
                median_render_variance_share=render_share, rows=rows)
-    (HERE / "results_validate.json").write_text(json.dumps(out, indent=2) + "\n")
+    (HERE / f"results_validate_{args.width}px.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
     import matplotlib
 
@@ -166,7 +167,7 @@ def main() -> None:
     fig.suptitle(f"floodlight, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
                  f"{args.peak_counts:g} counts (blood fraction and saturation are dimensionless)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(HERE / "validate.png", dpi=100)
+    fig.savefig(HERE / f"validate_{args.width}px.png", dpi=100)
 
 
 if __name__ == "__main__":

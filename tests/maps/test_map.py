@@ -32,7 +32,7 @@ def test_fast_spectra_match_the_scene_models():
     fast = PixelSpectra(tissue, params)
     for values in ([0.03, 0.55, 12.0, 1.7, 0.2], [0.005, 0.95, 30.0, 0.8, 1.5]):
         for got, ref in zip(fast.properties(np.array(values)), reference_properties(tissue, params, values)):
-            np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=1e-12)
+            np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=1e-11)  # 4-node Gauss rule for the power law
 
 
 def test_free_names_are_checked():

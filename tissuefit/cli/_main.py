@@ -284,7 +284,7 @@ def _map_parser(commands) -> None:
                     help="cosine of the viewing angle against the surface normal (default 1: straight down)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
                     help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
-    mp.add_argument("--chunk", type=int, metavar="P", default=4096, help="pixels per vmapped solve (default 4096)")
+    mp.add_argument("--chunk", type=int, metavar="P", default=256, help="pixels per vmapped solve (default 256)")
     mp.add_argument("--model-photons", type=int, metavar="N", default=50000,
                     help="photons of the white Monte Carlo trace (default 50000)")
     mp.add_argument("--model-seed", type=int, metavar="S", default=0, help="seed of the white Monte Carlo trace")
