@@ -52,7 +52,8 @@ def main() -> None:
     res = map_stack(m, tissue, free, white=white, chunk=args.chunk)
     good = res.flags == 0
     out = dict(machine=info, size=n, bands=21, chunk=args.chunk, free=free, compile_and_64px_seconds=compile_s,
-               map_seconds=res.seconds, pixels_per_second=n * n / res.seconds, flagged=int((~good).sum()),
+               map_seconds=res.seconds, timings=res.settings["timings"],
+               levenberg_marquardt_pixels=res.settings["levenberg_marquardt_pixels"], pixels_per_second=n * n / res.seconds, flagged=int((~good).sum()),
                median_steps=float(np.median(res.steps)),
                blood_fraction_median_rel_error=float(np.median(np.abs(res["blood_fraction"][good] / truth[0][good] - 1))),
                within_2sigma=float(np.mean(np.abs((res.values[:3] - truth) / res.sigma[:3])[:, good] < 2)))

@@ -172,12 +172,18 @@ def maps_png(result: MapResult, *, dpi: int = 110) -> bytes:
     bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
     bar.set_label("noise sigmas", fontsize=8)
     ax = axes[2, 1]
-    im = ax.imshow(result.flags, cmap="Reds", vmin=0, vmax=15, interpolation="nearest")
+    # each flagged pixel in the colour of its lowest set bit; good pixels white
+    flags = result.flags.astype(np.int64)
+    lowest = np.full(flags.shape, np.nan)
+    for bit in (3, 2, 1, 0):
+        lowest = np.where(flags & (1 << bit), float(bit), lowest)
+    colours = matplotlib.colors.ListedColormap(["tab:red", "tab:orange", "tab:purple", "tab:gray"]).with_extremes(bad="white")
+    im = ax.imshow(lowest, cmap=colours, vmin=-0.5, vmax=3.5, interpolation="nearest")
     ax.set_title(f"flags ({int((~good).sum())} of {good.size} pixels)", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
-    bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
-    bar.set_label("bits: 1 solver, 2 bound, 4 singular, 8 masked", fontsize=7)
+    bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, ticks=[0, 1, 2, 3])
+    bar.ax.set_yticklabels(["not converged", "at bound", "singular", "masked"], fontsize=7)
     for k in range(2, cols):
         axes[2, k].axis("off")
     fig.suptitle(f"tissuefit map: {result.flags.shape[1]} x {result.flags.shape[0]} pixels, {result.seconds:.1f} s",

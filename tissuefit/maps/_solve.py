@@ -107,6 +107,8 @@ GN_STEPS = 12
 Measured on 64 x 64 model-made pixels from the candidate search's start: Gauss-Newton converged in
 a median 6 steps (at most 10) on all but 3 of 4096; Levenberg-Marquardt took 13-28 (at most 35), and
 a vmapped loop runs until its slowest pixel stops, so Gauss-Newton first made the map 3-5x faster."""
+LM_CHUNK = 32
+"""Pixels per vmapped Levenberg-Marquardt solve (the few pixels Gauss-Newton did not converge on)."""
 CANDIDATES = 128
 """Starting points tried per pixel before the solve (`_initial`)."""
 SPREAD = 2.5
@@ -122,9 +124,10 @@ def _candidate_table(problem: Problem, xs):
 
 
 @jax.jit
-def _best_candidate(table, y, w, view):
-    """Per pixel the candidate of least chi^2 (with its least-squares scale when the scale is free)."""
-    rho = jnp.einsum("pv,kvb->pkb", view, table)
+def _best_candidate(rho, y, w):
+    """Per pixel the candidate of least chi^2 (with its least-squares scale when the scale is free);
+    `rho` [K, bands] the candidates' model values."""
+    rho = rho[None]
     wy = (w * y)[:, None, :]
     a = jnp.sum(wy * rho, -1)
     b = jnp.sum(w[:, None, :] * rho * rho, -1)
@@ -147,13 +150,13 @@ def _initial(problem: Problem, tissue, y, var, use, view, chunk: int) -> np.ndar
                        for p, r in zip(problem.parameters, readers)])
     offsets = (2.0 * qmc.Halton(d=x_free.size, scramble=True, seed=0).random(CANDIDATES - 1) - 1.0) * SPREAD
     xs = np.concatenate([x_free[None], x_free[None] + offsets])
-    table = _candidate_table(problem, jnp.asarray(xs))
+    # the candidates seen from the map's mean viewing direction (the start need not be exact)
+    rho = jnp.einsum("v,kvb->kb", jnp.asarray(view.mean(0)), _candidate_table(problem, jnp.asarray(xs)))
     w = np.where(use, 1.0 / np.where(var > 0, var, np.inf), 0.0)
     best, scale = np.zeros(y.shape[0], np.int64), np.ones(y.shape[0])
     for lo in range(0, y.shape[0], chunk):
         sl = slice(lo, lo + chunk)
-        k_scaled, s, k_plain = (np.asarray(a) for a in _best_candidate(table, jnp.asarray(y[sl]), jnp.asarray(w[sl]),
-                                                                        jnp.asarray(view[sl])))
+        k_scaled, s, k_plain = (np.asarray(a) for a in _best_candidate(rho, jnp.asarray(y[sl]), jnp.asarray(w[sl])))
         best[sl], scale[sl] = (k_scaled, s) if problem.scale else (k_plain, 1.0)
     x = xs[best]
     if not problem.scale:
@@ -178,7 +181,7 @@ def _run(problem, arrays, pixels, method, max_steps, chunk, rtol, atol, progress
     """`_solve_chunk` over `pixels` (indices) in chunks of `chunk` (the last padded by repetition);
     the outputs as numpy arrays, one row per pixel of `pixels`."""
     outs = []
-    chunk = min(chunk, pixels.size) if method == "lm" else chunk
+    chunk = min(chunk, LM_CHUNK) if method == "lm" else chunk  # fixed: one compilation whatever the count
     for lo in range(0, pixels.size, chunk):
         idx = pixels[lo:lo + chunk]
         idx = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])
@@ -269,7 +272,9 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     var = np.ascontiguousarray(np.where(use, m.variance.reshape(nb, -1).T, 1.0))
     y = np.where(use, y, 0.0)
     chunk = int(max(1, min(chunk, npx)))
-    x0 = _initial(problem, model, y, var, use, vw, chunk)
+    t_init = time.perf_counter()
+    x0 = _initial(problem, model, y, var, use, vw, max(chunk, 4096))
+    timings = {"setup": t_init - t0, "start": time.perf_counter() - t_init, "gauss_newton": 0.0, "levenberg_marquardt": 0.0}
     nx = x0.shape[1]
     prior_w = np.zeros((npx, nx))
     prior_mean = np.zeros((npx, nx))
@@ -283,13 +288,17 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
         arrays = (x0, y, var, use, vw, prior_mean, prior_w)
         # Gauss-Newton over every pixel; Levenberg-Marquardt (from the same start) over the pixels where it
         # did not converge, gathered into chunks of their own (`_run`)
+        t = time.perf_counter()
         out = _run(problem, arrays, np.arange(npx), "gn", GN_STEPS, chunk, rtol, atol, progress)
+        timings["gauss_newton"] += time.perf_counter() - t
         retry = np.flatnonzero(~out[5] | ~np.all(np.isfinite(out[0]), 1))
+        t = time.perf_counter()
         if retry.size:
             again = _run(problem, arrays, retry, "lm", max_steps, chunk, rtol, atol, None)
             for o, a in zip(out, again):
                 o[retry] = a
             out[6][retry] += GN_STEPS
+        timings["levenberg_marquardt"] += time.perf_counter() - t
         nat, sd, x, chi2, nuse, ok, steps, finite = out
         lm_pixels = int(retry.size)
         flags = np.zeros(npx, np.uint8)
@@ -308,7 +317,7 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
                      residual_rms=np.sqrt(chi2 / np.maximum(nuse, 1)).reshape(height, width),
                      reduced_chi2=(chi2 / dof).reshape(height, width), steps=steps.reshape(height, width),
                      seconds=time.perf_counter() - t0,
-                     settings=dict(levenberg_marquardt_pixels=lm_pixels, scale=bool(scale), smoothness=smoothness,
+                     settings=dict(timings=timings, levenberg_marquardt_pixels=lm_pixels, scale=bool(scale), smoothness=smoothness,
                                    passes=npass, chunk=chunk,
                                    max_steps=int(max_steps), rtol=float(rtol), atol=float(atol),
                                    white=dict(g_nodes=list(problem.white.g_nodes), n_nodes=list(problem.white.n_nodes),
