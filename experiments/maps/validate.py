@@ -50,10 +50,10 @@ def optics(fraction, saturation):
     return LayerOptics((Blood(fraction, saturation), ConstantAbsorption(0.5)), PowerLawScattering(18.9, 1.286, 0.9))
 
 
-def scene():
+def scene(patches=PATCHES):
     from tissuefit.scene import Box, SpectralTissue
 
-    regions = [Box((x0, y0, 0.0), (x1, y1, 2.0), optics=optics(f, s)) for (x0, x1, y0, y1), f, s in PATCHES]
+    regions = [Box((x0, y0, 0.0), (x1, y1, 2.0), optics=optics(f, s)) for (x0, x1, y0, y1), f, s in patches]
     return SpectralTissue(optics(*BASE), n=[1.4], thickness=[math.inf], regions=regions)
 
 
@@ -66,11 +66,11 @@ def pixel_geometry(e):
     return tx * e.distance, ty * e.distance, 1 / np.sqrt(1 + tx**2 + ty**2)
 
 
-def truth_maps(x, y):
+def truth_maps(x, y, patches=PATCHES):
     f = np.full(x.shape, BASE[0])
     s = np.full(x.shape, BASE[1])
     edge = np.full(x.shape, np.inf)
-    for (x0, x1, y0, y1), fb, sb in PATCHES:
+    for (x0, x1, y0, y1), fb, sb in patches:
         inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
         f[inside], s[inside] = fb, sb
         dx = np.maximum(np.maximum(x0 - x, x - x1), 0)
@@ -86,6 +86,8 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=1_500_000)
     ap.add_argument("--width", type=int, default=48)
     ap.add_argument("--peak-counts", type=float, default=3000.0)
+    ap.add_argument("--homogeneous", action="store_true",
+                    help="no patches: the base mucosa everywhere (where the local model's assumption holds)")
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
@@ -93,14 +95,16 @@ def main() -> None:
     from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
 
     info = machine()
-    tissue = scene()
+    patches = [] if args.homogeneous else PATCHES
+    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "")
+    tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
     r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=Floodlight(radius=1.2),
                options=RenderOptions(specular_deg=0.0, smoothing="none"))
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
-    np.savez_compressed(HERE / f"render_{args.width}px.npz", raw=raw, variance=rvar)  # for re-analysis (not committed)
+    np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for re-analysis (not committed)
     gain = args.peak_counts / raw.max()
     rng = np.random.default_rng(11)
     mean = raw * gain
@@ -108,7 +112,7 @@ def main() -> None:
     cam_var = np.maximum(mean, 0) + 4.0
     var = cam_var + rvar * gain**2
     x, y, cosv = pixel_geometry(e)
-    f_true, s_true, edge = truth_maps(x, y)
+    f_true, s_true, edge = truth_maps(x, y, patches)
     base = optics(*BASE)
     from tissuefit.scene import SpectralTissue
 
@@ -141,10 +145,10 @@ def main() -> None:
         rows[f"edge distance {lo}-{hi} cm"] = stats((edge >= lo) & (edge < hi))
     snr = float(np.median(mean / np.sqrt(var)))
     render_share = float(np.median(rvar * gain**2 / var))
-    out = dict(machine=info, photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
+    out = dict(machine=info, homogeneous=bool(args.homogeneous), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
                map_seconds=res.seconds, flagged=int((~good).sum()), median_snr=snr,
                median_render_variance_share=render_share, rows=rows)
-    (HERE / f"results_validate_{args.width}px.json").write_text(json.dumps(out, indent=2) + "\n")
+    (HERE / f"results_validate_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
     import matplotlib
 
@@ -163,11 +167,11 @@ def main() -> None:
             ax[row, col].set_title(title, fontsize=9)
             ax[row, col].set_xticks([])
             ax[row, col].set_yticks([])
-            fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("-" if col < 2 or row == 0 else "-", fontsize=8)
+            fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
     fig.suptitle(f"floodlight, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
                  f"{args.peak_counts:g} counts (blood fraction and saturation are dimensionless)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(HERE / f"validate_{args.width}px.png", dpi=100)
+    fig.savefig(HERE / f"validate_{tag}.png", dpi=100)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Shared pieces of the map tests: a small white Monte Carlo model (built once per module) and a tissue."""
+"""Shared pieces of the map tests: a small white Monte Carlo model (built once per session) and a tissue."""
 
 import numpy as np
 import pytest
@@ -16,7 +16,7 @@ def mucosa(**blood):
                           n=[1.4], thickness=[np.inf])
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def white(tmp_path_factory):
     from tissuefit.maps import build_model
 
