@@ -86,6 +86,8 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=1_500_000)
     ap.add_argument("--width", type=int, default=48)
     ap.add_argument("--peak-counts", type=float, default=3000.0)
+    ap.add_argument("--per-band", action="store_true",
+                    help="trace each photon in one band (SpectralOptions(mode='per_band')) instead of shared paths")
     ap.add_argument("--homogeneous", action="store_true",
                     help="no patches: the base mucosa everywhere (where the local model's assumption holds)")
     args = ap.parse_args()
@@ -93,15 +95,17 @@ def main() -> None:
     from tissuefit.fit import Measurement
     from tissuefit.maps import map as map_stack, model_for_tissue
     from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
+    from tissuefit.transport import SpectralOptions
 
     info = machine()
     patches = [] if args.homogeneous else PATCHES
-    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "")
+    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
     tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
     r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=Floodlight(radius=1.2),
-               options=RenderOptions(specular_deg=0.0, smoothing="none"))
+               options=RenderOptions(specular_deg=0.0, smoothing="none"),
+               spectral=SpectralOptions(mode="per_band") if args.per_band else None)
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
     np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for re-analysis (not committed)
@@ -145,7 +149,7 @@ def main() -> None:
         rows[f"edge distance {lo}-{hi} cm"] = stats((edge >= lo) & (edge < hi))
     snr = float(np.median(mean / np.sqrt(var)))
     render_share = float(np.median(rvar * gain**2 / var))
-    out = dict(machine=info, homogeneous=bool(args.homogeneous), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
+    out = dict(machine=info, homogeneous=bool(args.homogeneous), per_band=bool(args.per_band), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
                map_seconds=res.seconds, flagged=int((~good).sum()), median_snr=snr,
                median_render_variance_share=render_share, rows=rows)
     (HERE / f"results_validate_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
