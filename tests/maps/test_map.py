@@ -109,3 +109,14 @@ def test_map_refuses_wrong_bands(white):
     m = Measurement(np.ones((5, 2, 2)), np.ones((5, 2, 2)))
     with pytest.raises(ValueError, match="measured has 5 bands; the model's band grid has 21"):
         map_stack(m, mucosa(), FREE, white=white)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(chunk=0), "chunk"), (dict(smoothness=-1.0), "smoothness = -1"), (dict(view=1.5), r"view cosine = 1.5; allowed \[0, 1\]"),
+    (dict(free=["blood_fraction", "mus"]), "free = 'mus' is not a coefficient"),
+])
+def test_map_checks_its_arguments(white, kwargs, message):
+    m = Measurement(np.ones((21, 2, 2)), np.ones((21, 2, 2)))
+    free = kwargs.pop("free", FREE)
+    with pytest.raises(ValueError, match=message):
+        map_stack(m, mucosa(), free, white=white, **kwargs)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._checks import check_positive_int, check_range
 from .._setup import float64
 from ._cache import model_for_tissue
 from ._model import WhiteModel, view_weights
@@ -264,6 +265,13 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     Returns a `MapResult`.
     """
     t0 = time.perf_counter()
+    check_positive_int("chunk", chunk, high=2**20)
+    check_positive_int("max_steps", max_steps, high=10_000)
+    check_positive_int("passes", passes, high=100)
+    check_range("rtol", rtol, unit="-", low=0.0, low_open=True)
+    check_range("atol", atol, unit="-", low=0.0, low_open=True)
+    if smoothness is not None:
+        check_range("smoothness", smoothness, unit="unconstrained units", low=0.0, low_open=True)
     m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
     nb, height, width = m.shape
     npx = height * width
