@@ -89,6 +89,9 @@ def main() -> None:
     ap.add_argument("--peak-counts", type=float, default=3000.0)
     ap.add_argument("--per-band", action="store_true",
                     help="trace each photon in one band (SpectralOptions(mode='per_band')) instead of shared paths")
+    ap.add_argument("--cone-lights", action="store_true",
+                    help="the endoscope's cone lights instead of the floodlight, divided by a white-reference render "
+                         "(mua 0.5 /cm, mus 500 /cm, g 0.9: the same in every band) times the model's reflectance of that reference")
     ap.add_argument("--homogeneous", action="store_true",
                     help="no patches: the base mucosa everywhere (where the local model's assumption holds)")
     args = ap.parse_args()
@@ -100,15 +103,36 @@ def main() -> None:
 
     info = machine()
     patches = [] if args.homogeneous else PATCHES
-    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
+    tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
+           + ("_cone" if args.cone_lights else ""))
     tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
-    r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=Floodlight(radius=1.2),
-               options=RenderOptions(specular_deg=0.0, smoothing="none"),
-               spectral=SpectralOptions(mode="per_band") if args.per_band else None)
-    render_s = time.perf_counter() - t
+    light = None if args.cone_lights else Floodlight(radius=1.2)
+    spectral = SpectralOptions(mode="per_band") if args.per_band else None
+    r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=light,
+               options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
+    if args.cone_lights:  # white reference: same lights, a nearly white medium; its model reflectance restores it
+        from tissuefit.maps import model_for_tissue as _model
+        from tissuefit.scene import ConstantAbsorption, ConstantScattering, LayerOptics, SpectralTissue
+
+        ref_t = SpectralTissue(LayerOptics(ConstantAbsorption(0.5), ConstantScattering(500.0, 0.9)), n=[1.4],
+                               thickness=[math.inf])
+        ref = render(ref_t, e, photons=args.photons, key=jax.random.key(8), illumination=None,
+                     options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
+        w_raw, w_var = np.asarray(ref.raw, np.float64), np.asarray(ref.variance, np.float64)
+        _, _, cos0 = pixel_geometry(e)
+        from tissuefit.maps import view_weights
+
+        rho_w, _ = _model(ref_t, photons=50_000).reflectance(np.full((21,) + cos0.shape, 0.5),
+                                                            np.full((21,) + cos0.shape, 500.0), 0.9, 1.4,
+                                                            view=view_weights(cos0)[None])
+        rho_w = np.asarray(rho_w)
+        ratio = raw / w_raw * rho_w
+        rvar = ratio**2 * (rvar / raw**2 + w_var / w_raw**2)
+        raw = ratio
+    render_s = time.perf_counter() - t
     np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for regions.py (80 KB at 16 px)
     gain = args.peak_counts / raw.max()
     rng = np.random.default_rng(11)
@@ -173,7 +197,7 @@ def main() -> None:
             ax[row, col].set_xticks([])
             ax[row, col].set_yticks([])
             fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
-    fig.suptitle(f"floodlight, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
+    fig.suptitle(f"{'cone lights / white reference' if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
                  f"{args.peak_counts:g} counts (blood fraction and saturation are dimensionless)", fontsize=10)
     fig.tight_layout()
     fig.savefig(HERE / f"validate_{tag}.png", dpi=100)
