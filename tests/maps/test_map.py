@@ -105,10 +105,15 @@ def test_flags_and_files(white, tmp_path):
     assert (tmp_path / "maps.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_map_refuses_wrong_bands(white):
+def test_map_refuses_wrong_bands_and_layers(white):
     m = Measurement(np.ones((5, 2, 2)), np.ones((5, 2, 2)))
     with pytest.raises(ValueError, match="measured has 5 bands; the model's band grid has 21"):
         map_stack(m, mucosa(), FREE, white=white)
+    base = mucosa()
+    two = SpectralTissue([base.layers[0], base.layers[0]], n=[1.4, 1.4], thickness=[0.1, np.inf])
+    m = Measurement(np.ones((21, 2, 2)), np.ones((21, 2, 2)))
+    with pytest.raises(ValueError, match=r"model has 2 layer\(s\), the top 0.1 cm thick; .* semi-infinite layer"):
+        map_stack(m, two, FREE, white=white)
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -225,6 +225,10 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0):
     if m.wavelengths is not None and not np.allclose(m.wavelengths, model.bands.wavelengths, atol=1e-6):
         raise ValueError(f"measured wavelengths {m.wavelengths.tolist()} nm differ from the model's band centres "
                          f"{model.bands.wavelengths.tolist()} nm")
+    thickness = np.asarray(model.geometry.thickness, np.float64).reshape(-1)
+    if model.num_layers != 1 or np.isfinite(thickness[0]):
+        raise ValueError(f"model has {model.num_layers} layer(s), the top {thickness[0]:g} cm thick; the white Monte Carlo "
+                         "model is of one semi-infinite layer (thickness inf)")
     if abs(float(model.geometry.n_above) - 1.0) > 1e-9:
         raise ValueError(f"model.n_above = {float(model.geometry.n_above):g}; the white Monte Carlo model has air (1) above")
     # `where` is only needed to read the initial values: a shared placeholder keeps the parameters
