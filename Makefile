@@ -27,6 +27,10 @@ demo: $(STAMP)
 	$(BIN)/tissuefit fit out/demo/fit/measured.json --scene data_spec/examples/fit_demo.toml --free blood_fraction,blood_saturation \
 		--init blood_fraction=0.05,blood_saturation=0.4 --scale --out out/demo/fit
 	@echo "truth: blood_fraction 0.02, blood_saturation 0.7 (data_spec/examples/fit_demo.toml); wrote out/demo/fit/fit.{json,png}"
+	@# Last, per-pixel maps of the same measurement (white Monte Carlo model, built once and cached).
+	$(BIN)/tissuefit map out/demo/fit/measured.json --scene data_spec/examples/fit_demo.toml --free blood_fraction,saturation \
+		--out out/demo/map
+	@echo "wrote out/demo/map/maps.{tif,json,png} and out/demo/map/summary.json"
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -7,7 +7,9 @@ persistent compilation cache), or let each entry point switch float64 on for its
 
 The names below are imported on first use (PEP 562), so that `import tissuefit` (and the
 `tissuefit` command's `--help`) does not load JAX until something needs it. `tissuefit.fit` is the
-function; the package's other names: `from tissuefit.fit import ...`.
+function; the package's other names: `from tissuefit.fit import ...`. Likewise `tissuefit.map` is the
+per-pixel mapping function `tissuefit.maps.map` (it shadows the builtin only as an attribute of this
+package); the maps package is `tissuefit.maps`.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from ._lazy import lazy_exports
 
-_SUBPACKAGES = ("cli", "fit", "io", "photonmap", "render", "replay", "scene", "transport")
+_SUBPACKAGES = ("cli", "fit", "io", "maps", "photonmap", "render", "replay", "scene", "transport")
 
 _EXPORTS = {
     "configure": "._setup", "default_cache_dir": "._setup", "Outcome": "._outcome", "OutcomeError": "._outcome",
@@ -37,6 +39,7 @@ _EXPORTS = {
         "knn_radius", "update_map")},
     **{name: ".render" for name in ("Endoscope", "Floodlight", "RenderOptions", "RenderResult")},
     **{name: ".fit" for name in ("FitConfig", "FitParameter", "FitResult", "Measurement")},
+    "map": ".maps", "MapResult": ".maps", "WhiteModel": ".maps", "build_model": ".maps",
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(globals(), _EXPORTS, _SUBPACKAGES)
@@ -56,6 +59,10 @@ class _Package(types.ModuleType):
         if not isinstance(value, types.ModuleType):
             raise AttributeError("tissuefit.fit is the fit function; it cannot be replaced")
 
+    @property
+    def map(self):
+        return importlib.import_module(".maps", __name__).map
+
 
 sys.modules[__name__].__class__ = _Package
 
@@ -64,6 +71,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
     from ._outcome import Outcome as Outcome, OutcomeError as OutcomeError
     from ._setup import configure as configure, default_cache_dir as default_cache_dir
     from .fit import FitConfig as FitConfig, FitParameter as FitParameter, FitResult as FitResult, Measurement as Measurement, fit as fit
+    from .maps import MapResult as MapResult, WhiteModel as WhiteModel, build_model as build_model, map as map
     from .photonmap import (
         SurfaceMap as SurfaceMap,
         VolumeMap as VolumeMap,

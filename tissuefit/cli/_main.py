@@ -22,7 +22,7 @@ EXIT_INTERRUPTED = 130
 """Ctrl-C: 128 + SIGINT, as a shell reports a command killed by it."""
 MAX_SEED = 2**63 - 1
 
-COMMANDS = ("simulate", "render", "check", "compare", "synthesize", "fit")
+COMMANDS = ("simulate", "render", "check", "compare", "synthesize", "fit", "map")
 """Each subcommand lives in `tissuefit.cli._<name>`, whose `run(args)` returns the exit status."""
 
 # Choices the parser offers; tests/test_cli.py checks them against the library's own tuples
@@ -137,6 +137,7 @@ def parser() -> argparse.ArgumentParser:
     _compare_parser(commands)
     _fit_parser(commands)
     _synthesize_parser(commands)
+    _map_parser(commands)
     return parser
 
 
@@ -273,6 +274,40 @@ def _fit_parser(commands) -> None:
                      help="settled landing points averaged, each on a render with fresh random numbers (default 4)")
     fit.add_argument("--no-register", action="store_true", help="skip the band-to-band registration")
     fit.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+
+
+def _map_parser(commands) -> None:
+    mp = commands.add_parser(
+        "map", help="per-pixel parameter maps of a measured stack (white Monte Carlo local model)",
+        description="Prepare MEASURED (calibration, dead-band masks, band registration; data_spec/measured.md) and fit, "
+                    "in every pixel, the --free coefficients of the top layer of --scene's tissue (its values are the "
+                    "initial guess and hold what is not free) and a free per-pixel scale, against a white Monte Carlo "
+                    "model of a homogeneous semi-infinite medium (tissuefit.maps; README, \"Parameter maps\"; built "
+                    "once per g and n and cached). Writes DIR/maps.tif with its sidecar DIR/maps.json (values, "
+                    "standard errors, residual RMS, reduced chi2, flags; data_spec/maps.md), DIR/summary.json and "
+                    "DIR/maps.png. Flagged pixels (not converged, at a bound, singular, masked) are kept and marked, "
+                    "never filled. Only the ratio of absorption to reduced scattering is seen by a wide-field "
+                    "reflectance: fit blood_fraction or a, not both.")
+    mp.add_argument("measured", metavar="MEASURED",
+                    help="measured stack: a sidecar (.json or .tif), a folder of band images, or an ENVI header (.hdr)")
+    mp.add_argument("--scene", metavar="SCENE", required=True,
+                    help="spectral scene file (.toml): the top layer's spectral models, g, n and the initial guess")
+    mp.add_argument("--free", metavar="NAME[,NAME...]", required=True,
+                    help="top-layer coefficients to map: blood_fraction, saturation (blood_saturation), a, b, c_ppix, "
+                         "mua, ...")
+    mp.add_argument("--init", metavar="NAME=VALUE[,...]", default="", help="initial guess other than the scene's values")
+    mp.add_argument("--out", metavar="DIR", type=Path, required=True, help="folder for maps.{tif,json,png} and summary.json")
+    mp.add_argument("--no-scale", action="store_true", help="no per-pixel scale (MEASURED is a calibrated reflectance)")
+    mp.add_argument("--view-cos", type=float, metavar="C", default=1.0,
+                    help="cosine of the viewing angle against the surface normal (default 1: straight down)")
+    mp.add_argument("--smoothness", type=float, metavar="TAU",
+                    help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
+    mp.add_argument("--chunk", type=int, metavar="P", default=256, help="pixels per vmapped solve (default 256)")
+    mp.add_argument("--model-photons", type=int, metavar="N", default=50000,
+                    help="photons of the white Monte Carlo trace (default 50000)")
+    mp.add_argument("--model-seed", type=int, metavar="S", default=0, help="seed of the white Monte Carlo trace")
+    mp.add_argument("--no-register", action="store_true", help="skip the band-to-band registration")
+    mp.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,65 @@
+"""Speed of `tissuefit.map` (issue 24, item 4): an N x N x 21 stack made by the model itself (random
+blood fraction, saturation, scattering power and scale; camera noise), mapped with free
+blood_fraction, saturation, b and the scale, once to compile and once timed. The model's photon count
+does not change the solve's cost (same table shapes), so a small model is used.
+
+    PYTHONPATH=. python experiments/maps/speed.py [--size 512] [--chunk 4096]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import machine  # noqa: E402
+
+import tissuefit  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--chunk", type=int, default=4096)
+    args = ap.parse_args()
+    tissuefit.configure()
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import build_model, camera_noise, map as map_stack, model_stack
+    from tissuefit.scene import Blood, ConstantAbsorption, LayerOptics, PowerLawScattering, SpectralTissue
+
+    info = machine()
+    tissue = SpectralTissue(LayerOptics((Blood(0.02, 0.7), ConstantAbsorption(0.5)), PowerLawScattering(18.9, 1.286, 0.9)),
+                            n=[1.4], thickness=[math.inf])
+    white = build_model((0.9,), (1.4,), photons=4000, seed=5, cache=False)
+    free = ["blood_fraction", "saturation", "b"]
+    n = args.size
+    rng = np.random.default_rng(0)
+    truth = np.stack([rng.uniform(0.008, 0.05, (n, n)), rng.uniform(0.4, 0.9, (n, n)), rng.uniform(0.9, 1.6, (n, n))])
+    counts, var = camera_noise(model_stack(tissue, free, truth, white=white, scale=rng.uniform(0.5, 2, (n, n))), rng=rng)
+    m = Measurement(counts, var)
+    small = Measurement(counts[:, :64, :64], var[:, :64, :64])
+    t = time.perf_counter()
+    map_stack(small, tissue, free, white=white, chunk=args.chunk)  # compiles the chunk solver
+    compile_s = time.perf_counter() - t
+    res = map_stack(m, tissue, free, white=white, chunk=args.chunk)
+    good = res.flags == 0
+    out = dict(machine=info, size=n, bands=21, chunk=args.chunk, free=free, compile_and_64px_seconds=compile_s,
+               map_seconds=res.seconds, timings=res.settings["timings"],
+               levenberg_marquardt_pixels=res.settings["levenberg_marquardt_pixels"], pixels_per_second=n * n / res.seconds, flagged=int((~good).sum()),
+               median_steps=float(np.median(res.steps)),
+               blood_fraction_median_rel_error=float(np.median(np.abs(res["blood_fraction"][good] / truth[0][good] - 1))),
+               within_2sigma=float(np.mean(np.abs((res.values[:3] - truth) / res.sigma[:3])[:, good] < 2)))
+    (HERE / f"results_speed_{n}.json").write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,23 @@
+"""Shared pieces of the map tests: a small white Monte Carlo model (built once per session) and a tissue."""
+
+import numpy as np
+import pytest
+
+from tissuefit.scene import Blood, ConstantAbsorption, LayerOptics, PowerLawScattering, SpectralTissue
+
+PHOTONS = 4000
+"""Photons of the tests' white Monte Carlo model (a few seconds)."""
+
+
+def mucosa(**blood):
+    """The demo's mucosa: 2 % blood at 70 % saturation, a 0.5 /cm background, Jacques's scattering."""
+    b = dict(fraction=0.02, saturation=0.7) | blood
+    return SpectralTissue(LayerOptics((Blood(**b), ConstantAbsorption(0.5)), PowerLawScattering(18.9, 1.286, 0.9)),
+                          n=[1.4], thickness=[np.inf])
+
+
+@pytest.fixture(scope="session")
+def white(tmp_path_factory):
+    from tissuefit.maps import build_model
+
+    return build_model((0.9,), (1.4,), photons=PHOTONS, seed=5, cache=tmp_path_factory.mktemp("white"))

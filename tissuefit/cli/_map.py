@@ -1,0 +1,66 @@
+"""`tissuefit map MEASURED --scene SCENE --free NAME,... --out DIR`: per-pixel parameter maps."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from .. import io
+from .._checks import check_positive_int, check_range
+from ._common import out_folder, render_run
+from ._main import InvalidInput, check_interrupt
+
+
+def run(args) -> int:
+    out = out_folder(args.out)
+    scene = render_run(args.scene)
+    tissue = scene.scene.tissue
+    free = [n for n in args.free.split(",") if n.strip()]
+    try:
+        check_positive_int("--chunk", args.chunk, high=2**20)
+        check_positive_int("--model-photons", args.model_photons, high=10**8)
+        check_range("--view-cos", args.view_cos, unit="-", low=0.0, high=1.0)
+        if args.smoothness is not None:
+            check_range("--smoothness", args.smoothness, unit="unconstrained units", low=0.0, low_open=True)
+        from ..fit import initial_values
+        from ..maps import build_model, free_parameters, map as map_stack, write_maps
+
+        tissue = initial_values(tissue, args.init)
+        free_parameters(tissue, free)  # names checked before the model is built or the stack read
+        measured = io.read_measured(args.measured)
+        measured = io.prepare_measured(measured, register=not args.no_register)
+        measurement = io.measurement(measured)
+        if measurement.shape[0] != tissue.bands.num_bands:  # before the model is built
+            raise ValueError(f"measured has {measurement.shape[0]} bands; the model's band grid has "
+                             f"{tissue.bands.num_bands} ({args.scene})")
+        _, _, g = tissue.properties()
+        white = build_model((float(g[0, 0]),), (float(tissue.geometry.n[0]),), photons=args.model_photons,
+                            seed=args.model_seed, progress=None if args.json else
+                            (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
+
+        def progress(done, total):
+            check_interrupt()
+            if not args.json:
+                print(f"  {done}/{total} pixels", file=sys.stderr, flush=True)
+
+        result = map_stack(measurement, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos,
+                           smoothness=args.smoothness, chunk=args.chunk, progress=progress)
+    except ValueError as err:
+        raise InvalidInput(f"{args.measured}: {err}") from None
+    extra = {"scene_file": str(args.scene), "measured": str(args.measured), "free": free, "init": args.init,
+             "units": measured.units, "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}}
+    files = write_maps(out, result, extra=extra)
+    args.partial.files += files
+    summary = result.summary()
+    if args.json:
+        print(json.dumps(json.loads((out / "summary.json").read_text()), indent=2))
+    else:
+        lines = [f"mapped {summary['pixels']} pixels in {result.seconds:.1f} s: {summary['good_pixels']} good, "
+                 f"{summary['flagged_pixels']} flagged; median reduced chi2 {summary['median_reduced_chi2']}"]
+        for name, p in summary["parameters"].items():
+            if p["median"] is not None:
+                lines.append(f"  {name:<20} median {p['median']:.4g} (5-95 %: {p['p05']:.4g} .. {p['p95']:.4g}) "
+                             f"+- {p['median_sigma']:.3g} {p['units']}".rstrip())
+        lines.append("wrote " + ", ".join(str(f) for f in files))
+        print("\n".join(lines), flush=True)
+    return 0

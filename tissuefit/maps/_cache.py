@@ -1,0 +1,117 @@
+"""Built white Monte Carlo models on disk, keyed by everything they depend on, written atomically.
+
+A model depends on its nodes (g, n), photons, seed, a_floor, the tabulation grids and the tracer
+that made it: the key hashes those settings and the source of tissuefit/transport and of the
+builder, so a changed tracer never serves an old table. Models live in
+`<cache>/maps/white-<key>.npz`, beside the compilation cache (`tissuefit.default_cache_dir()`'s
+parent; `TISSUEFIT_CACHE_DIR=off` turns both off), written to a temporary file and renamed.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .._atomic import atomic_writer
+from ._build import A_FLOOR, COS_EDGES, LOG_A, build_node, check_node
+from ._model import WhiteModel
+
+FORMAT = "tissuefit-white-mc/1"
+
+
+@functools.lru_cache(maxsize=1)
+def _source_hash() -> str:
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for f in sorted([*(root / "transport").glob("*.py"), root / "maps" / "_build.py"]):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def model_key(g_nodes, n_nodes, *, photons: int, seed: int, a_floor: float) -> str:
+    """The cache key (hex) of a model with these settings and this tracer."""
+    doc = dict(format=FORMAT, g=[round(float(g), 6) for g in g_nodes], n=[round(float(n), 6) for n in n_nodes],
+               photons=int(photons), seed=int(seed), a_floor=float(a_floor), log_a=list(LOG_A),
+               cos_edges=list(COS_EDGES), source=_source_hash())
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:24]
+
+
+def default_model_dir() -> Path | None:
+    from .._setup import default_cache_dir
+
+    base = default_cache_dir()
+    return None if base is None else base.parent / "maps"
+
+
+def _save(path: Path, model: WhiteModel, key: str) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, grid=model.grid, log_value=model.log_value, log_slope=model.log_slope,
+             rel_variance=model.rel_variance, eps=model.eps,
+             meta=np.frombuffer(json.dumps(dict(format=FORMAT, key=key, g_nodes=model.g_nodes, n_nodes=model.n_nodes,
+                                                photons=model.photons, a_floor=model.a_floor, seed=model.seed,
+                                                cos_edges=model.cos_edges)).encode(), np.uint8))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_writer(path, binary=True) as handle:
+        handle.write(buf.getvalue())
+
+
+def _load(path: Path, key: str) -> WhiteModel | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            if meta.get("format") != FORMAT or meta.get("key") != key:
+                return None
+            return WhiteModel(g_nodes=tuple(meta["g_nodes"]), n_nodes=tuple(meta["n_nodes"]),
+                              cos_edges=tuple(meta["cos_edges"]), photons=int(meta["photons"]),
+                              a_floor=float(meta["a_floor"]), seed=int(meta["seed"]), grid=z["grid"],
+                              grid_spec=(float(z["grid"][0]), float(z["grid"][1] - z["grid"][0]), int(z["grid"].size)),
+                              log_value=z["log_value"], log_slope=z["log_slope"], rel_variance=z["rel_variance"],
+                              eps=z["eps"])
+    except (OSError, ValueError, KeyError):
+        return None  # unreadable or stale: rebuilt (and overwritten) by the caller
+
+
+def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: int = 0, a_floor: float = A_FLOOR,
+                cache: str | Path | bool | None = True, progress=None) -> WhiteModel:
+    """A `WhiteModel` on the (g, n) nodes: read from the cache when built before, else traced
+    (one white Monte Carlo trace of `photons` photons per node; about 20 s per node at g = 0.9 on
+    2 CPU cores, longer at higher g) and cached. `cache`: True (the default folder,
+    `default_model_dir()`), a folder, or False/None (no cache). `progress(text)` hears each node."""
+    g_nodes = tuple(sorted({check_node(g, 1.4)[0] for g in np.atleast_1d(g_nodes)}))
+    n_nodes = tuple(sorted({check_node(0.5, n)[1] for n in np.atleast_1d(n_nodes)}))
+    key = model_key(g_nodes, n_nodes, photons=photons, seed=seed, a_floor=a_floor)
+    folder = default_model_dir() if cache is True else (Path(cache) if cache else None)
+    path = None if folder is None else folder / f"white-{key}.npz"
+    if path is not None and path.exists():
+        model = _load(path, key)
+        if model is not None:
+            return model
+    tables = []
+    for g in g_nodes:
+        row = []
+        for n in n_nodes:
+            row.append(build_node(g, n, photons=photons, seed=seed, a_floor=a_floor))
+            if progress is not None:
+                progress(f"white Monte Carlo node g = {g:g}, n = {n:g}: {row[-1]['seconds']:.1f} s")
+        tables.append(row)
+    model = WhiteModel.from_tables(tables, g_nodes=g_nodes, n_nodes=n_nodes, photons=photons, a_floor=a_floor, seed=seed)
+    if path is not None:
+        _save(path, model, key)
+    return model
+
+
+def model_for_tissue(tissue, **kwargs) -> WhiteModel:
+    """The model for the top layer of a `SpectralTissue`: its g (which must be the same in every
+    band) and n, one node (exact: no interpolation)."""
+    _, _, g = tissue.properties()
+    g = np.asarray(g)[0]
+    if np.ptp(g) > 1e-9:
+        raise ValueError(f"tissue layer 0: g varies across bands ({g.min():g}..{g.max():g}); the white Monte Carlo "
+                         "model needs one g per layer")
+    return build_model((float(g[0]),), (float(tissue.geometry.n[0]),), **kwargs)

@@ -1,0 +1,171 @@
+"""`WhiteModel`: diffuse reflectance of a homogeneous semi-infinite medium as an explicit JAX function.
+
+    rho = model.reflectance(mua, mus, g, n, view)        (mua, mus [1/cm], any shape)
+
+The tables (`_build.py`) hold, per (g, n) node, R and dR/d ln a on a grid of log10 a (a = mua /
+mus: every length scales as 1/mus, Kienle & Patterson 1996; Alerstam et al. 2008), per exit-angle
+bin. Between grid nodes ln R is a cubic Hermite interpolant with the exact Monte Carlo slopes
+(C1, differentiable). Between g nodes the model interpolates at fixed a' = mua / mus' =
+a / (1 - g) (the similarity relation, Wyman, Patterson & Wilson, J Appl Phys 66:3243, 1989, makes
+ln R a slowly varying function of g there), between n nodes at fixed a, both with Catmull-Rom
+(cubic Hermite, finite-difference slopes) weights on ln R; with one node it is that node's table.
+
+`view`: weights over the exit-angle bins and the hemispherical total (`view_weights`): a camera
+sees radiance in one direction, whose share of the exitance depends on a (more forward-peaked
+escape at high absorption), so a map uses the bin of each pixel's viewing angle.
+
+The standard error is the Monte Carlo one of the nodes' tables, interpolated as a relative error
+(the interpolation's own error is measured by experiments/maps/model_check.py, not included).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._build import COS_EDGES
+
+LN10 = float(np.log(10.0))
+TINY = 1e-300
+
+
+def hermite_weights(nodes: tuple[float, ...], x):
+    """Weights w [len(nodes)] with sum_i w_i y_i the cubic Hermite (Catmull-Rom) interpolant of
+    values y at `nodes` (increasing; finite-difference slopes, one-sided at the ends), at x
+    (clamped to the nodes' range). One node: [1]; two: linear. Differentiable in x."""
+    xs = np.asarray(nodes, np.float64)
+    m = xs.size
+    if m == 1:
+        return jnp.ones(1)
+    x = jnp.clip(x, xs[0], xs[-1])
+    k = jnp.clip(jnp.searchsorted(jnp.asarray(xs), x, side="right") - 1, 0, m - 2)
+    x0, x1 = jnp.asarray(xs)[k], jnp.asarray(xs)[k + 1]
+    h = x1 - x0
+    t = (x - x0) / h
+    h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+    # slope at node i as weights on y: (y[i+1] - y[i-1]) / (x[i+1] - x[i-1]), one-sided at the ends
+    lo = np.maximum(np.arange(m) - 1, 0)
+    hi = np.minimum(np.arange(m) + 1, m - 1)
+    slope = np.zeros((m, m))
+    slope[np.arange(m), hi] += 1.0 / (xs[hi] - xs[lo])
+    slope[np.arange(m), lo] -= 1.0 / (xs[hi] - xs[lo])
+    slope = jnp.asarray(slope)
+    eye = jnp.eye(m)
+    if m == 2:
+        return eye[k] * (1 - t) + eye[k + 1] * t
+    return h00 * eye[k] + h01 * eye[k + 1] + h * (h10 * slope[k] + h11 * slope[k + 1])
+
+
+def view_weights(cos_view, cos_edges=COS_EDGES) -> np.ndarray:
+    """[..., bins + 1] weights over the exit-angle bins for viewing cosines `cos_view` [...]
+    (linear between bin centres in cos theta, clamped at the outer centres); the last entry (the
+    hemispherical total) is 0. `cos_view=None` gives the hemispherical total alone."""
+    edges = np.asarray(cos_edges, np.float64)
+    nb = edges.size - 1
+    if cos_view is None:
+        return np.eye(nb + 1)[nb]
+    c = np.asarray(cos_view, np.float64)
+    check = np.isfinite(c) & (c >= 0) & (c <= 1)
+    if not np.all(check):
+        bad = c[~check].reshape(-1)[0]
+        raise ValueError(f"view cosine = {bad:g}; allowed [0, 1] (cos of the angle between the view and the normal)")
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    cc = np.clip(c, centres[0], centres[-1])
+    k = np.clip(np.searchsorted(centres, cc, side="right") - 1, 0, nb - 2)
+    t = (cc - centres[k]) / (centres[k + 1] - centres[k])
+    w = np.zeros(c.shape + (nb + 1,))
+    np.put_along_axis(w, k[..., None], (1 - t)[..., None], -1)
+    idx = (k + 1)[..., None]
+    np.put_along_axis(w, idx, np.take_along_axis(w, idx, -1) + t[..., None], -1)
+    return w
+
+
+class WhiteModel(eqx.Module):
+    """Tabulated white Monte Carlo reflectance (module docstring).
+
+    Fields: `g_nodes`, `n_nodes` (static tuples); `grid` [A] log10 a; `log_value` [G, N, V, A]
+    ln R; `log_slope` d ln R / d log10 a; `rel_variance` (s.e. / R)^2; per (g, n, view bin).
+    `cos_edges` (static): exit-angle bin edges; `photons`, `a_floor`, `seed` (static): how it was
+    built; `eps` [G, N]: each node's trace absorption (a = mua/mus).
+    """
+
+    g_nodes: tuple[float, ...] = eqx.field(static=True)
+    n_nodes: tuple[float, ...] = eqx.field(static=True)
+    cos_edges: tuple[float, ...] = eqx.field(static=True)
+    photons: int = eqx.field(static=True)
+    a_floor: float = eqx.field(static=True)
+    seed: int = eqx.field(static=True)
+    grid_spec: tuple[float, float, int] = eqx.field(static=True)
+    """(first log10 a, step, nodes) of `grid`."""
+    grid: np.ndarray
+    log_value: np.ndarray
+    log_slope: np.ndarray
+    rel_variance: np.ndarray
+    eps: np.ndarray
+
+    @classmethod
+    def from_tables(cls, tables, *, g_nodes, n_nodes, photons, a_floor, seed, cos_edges=COS_EDGES) -> WhiteModel:
+        """Assemble from `tables[i][j]` (`_build.tabulate` of node (g_nodes[i], n_nodes[j]))."""
+        grid = np.asarray(tables[0][0]["grid"])
+        val = np.array([[t["value"] for t in row] for row in tables])
+        slope = np.array([[t["slope"] for t in row] for row in tables])
+        var = np.array([[t["variance"] for t in row] for row in tables])
+        pos = val > 1e-250
+        safe = np.where(pos, val, 1.0)
+        return cls(g_nodes=tuple(float(g) for g in g_nodes), n_nodes=tuple(float(n) for n in n_nodes),
+                   cos_edges=tuple(float(c) for c in cos_edges), photons=int(photons), a_floor=float(a_floor),
+                   seed=int(seed), grid_spec=(float(grid[0]), float(grid[1] - grid[0]), int(grid.size)), grid=grid,
+                   log_value=np.where(pos, np.log(safe), np.log(TINY)),
+                   log_slope=np.where(pos, slope / safe * LN10, 0.0),
+                   rel_variance=np.where(pos, var / safe / safe, 0.0),
+                   eps=np.array([[t["eps"] for t in row] for row in tables]))
+
+    @property
+    def num_views(self) -> int:
+        return len(self.cos_edges)
+
+    def _node(self, i: int, j: int, u, view):
+        """ln R and relative variance of node (i, j) at log10 a = u [...], mixed over `view` [..., V]."""
+        u0, h, na = self.grid_spec
+        u = jnp.clip(u, u0, u0 + h * (na - 1))
+        k = jnp.clip(jnp.floor((u - u0) / h).astype(jnp.int32), 0, na - 2)
+        t = (u - (u0 + h * k.astype(u.dtype))) / h
+        y = jnp.asarray(self.log_value[i, j])  # [V, A]
+        d = jnp.asarray(self.log_slope[i, j])
+        rv = jnp.asarray(self.rel_variance[i, j])
+        h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+        # [..., V]
+        ly = h00[..., None] * y.T[k] + h01[..., None] * y.T[k + 1] + h * (h10[..., None] * d.T[k] + h11[..., None] * d.T[k + 1])
+        r = jnp.exp(ly)
+        rho = jnp.sum(r * view, -1)
+        var = jnp.sum((r * view) ** 2 * ((1 - t)[..., None] * rv.T[k] + t[..., None] * rv.T[k + 1]), -1)
+        return jnp.log(jnp.maximum(rho, TINY)), var / jnp.maximum(rho, TINY) ** 2
+
+    def log_reflectance(self, mua, mus, g, n, view):
+        """(ln rho, relative variance) at mua, mus [1/cm] (same shape [...]), scalars g, n, and
+        `view` [..., V] or [V] (`view_weights`). Differentiable in mua, mus, g, n."""
+        a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30)
+        wg = hermite_weights(self.g_nodes, g)
+        wn = hermite_weights(self.n_nodes, n)
+        view = jnp.asarray(view)
+        out = 0.0
+        rel = 0.0
+        for i, gi in enumerate(self.g_nodes):
+            # at fixed a' = a / (1 - g): node i is evaluated at a (1 - g_i) / (1 - g)
+            u = jnp.log10(jnp.maximum(a * (1.0 - gi) / (1.0 - g), 1e-300))
+            for j in range(len(self.n_nodes)):
+                ly, rv = self._node(i, j, u, view)
+                w = wg[i] * wn[j]
+                out = out + w * ly
+                rel = rel + w**2 * rv
+        return out, rel
+
+    def reflectance(self, mua, mus, g, n, view=None):
+        """(rho, standard error): the reflectance a Lambertian surface of the same radiance in the
+        `view` direction would have (`view=None`: the hemispherical diffuse reflectance Rd),
+        specular reflection excluded, per unit incident power, under a wide uniform beam."""
+        v = view_weights(None, self.cos_edges) if view is None else view
+        ly, rel = self.log_reflectance(jnp.asarray(mua), jnp.asarray(mus), g, n, v)
+        rho = jnp.exp(ly)
+        return rho, rho * jnp.sqrt(rel)

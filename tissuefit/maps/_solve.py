@@ -1,0 +1,363 @@
+"""`map`: per-pixel least squares against the white Monte Carlo model, vmapped and chunked.
+
+Per pixel, with free unconstrained coordinates x (the transforms of `tissuefit.fit`: log for
+coefficients, a logistic between bounds; docs/design.md §9) and a free log scale s (irradiance x
+calibration, on by default), the residual of band j is
+
+    r_j = (e^s rho_j(x) - y_j) / sqrt(var_j + (e^s rho_j se_rel,j)^2)      (0 where masked)
+
+with rho the model's reflectance in the pixel's viewing direction (`WhiteModel`), var the
+measurement's noise variance and se_rel the model's relative Monte Carlo error (held fixed
+within a step). The start is the best of 128 quasi-random candidates by chi^2 (`_initial`); optimistix's
+Gauss-Newton then minimises sum r^2 in a few steps, and optimistix's Levenberg-Marquardt takes over
+the pixels where Gauss-Newton did not converge (`GN_STEPS` says why that order); `jax.vmap` runs
+each over a chunk of pixels, compiled once for a fixed chunk size. An optional smoothness prior adds
+(x_i - m_i) / tau per parameter, m the mean of the 4 neighbours' previous solution (one more pass
+per `passes`). Uncertainties: the covariance (J^T J)^-1 at the solution, mapped to the natural
+values by the transforms' derivatives (the delta method). Pixels are flagged, never filled:
+FLAG_SOLVER (optimistix did not report success), FLAG_BOUND (a value at its bound), FLAG_SINGULAR
+(J^T J not invertible or a value not finite), FLAG_MASKED (fewer usable bands than unknowns).
+`map_reference` solves pixel by pixel in a Python loop (the reference the vmapped path is tested
+against).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._checks import check_positive_int, check_range
+from .._setup import float64
+from ._cache import model_for_tissue
+from ._model import WhiteModel, view_weights
+from ._result import MapResult
+from ._spectra import PixelSpectra, free_parameters
+
+FLAG_SOLVER, FLAG_BOUND, FLAG_SINGULAR, FLAG_MASKED = 1, 2, 4, 8
+FLAGS = {"solver": FLAG_SOLVER, "bound": FLAG_BOUND, "singular": FLAG_SINGULAR, "masked": FLAG_MASKED}
+
+
+class Problem(eqx.Module):
+    """What the per-pixel residual needs (static parts and small arrays)."""
+
+    spectra: PixelSpectra
+    white: WhiteModel
+    parameters: tuple = eqx.field(static=True)
+    n: float = eqx.field(static=True)
+    scale: bool = eqx.field(static=True)
+
+    def values(self, x):
+        vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
+        return jnp.stack(vals)
+
+    def model(self, x, view):
+        """(ln rho [bands], relative variance [bands]) at unconstrained x (scale excluded)."""
+        free = self.values(x)
+        mua, mus, g = self.spectra.properties(free)
+        return self.white.log_reflectance(mua, mus, g, self.n, view)
+
+    def residual(self, x, args):
+        y, var, use, view, prior_mean, prior_w = args
+        ly, rel = self.model(x, view)
+        log_s = x[-1] if self.scale else 0.0
+        pred = jnp.exp(log_s + ly)
+        sigma2 = var + jax.lax.stop_gradient(pred**2 * rel)
+        r = jnp.where(use, (pred - y) / jnp.sqrt(jnp.where(use, sigma2, 1.0)), 0.0)
+        return jnp.concatenate([r, (x - prior_mean) * prior_w])
+
+
+def _solve_one(problem: Problem, x0, args, method: str, max_steps: int, rtol: float, atol: float):
+    """One pixel: optimistix's Gauss-Newton (`method="gn"`) or Levenberg-Marquardt ("lm") from x0,
+    then the covariance, the natural values and their standard errors at the solution."""
+    solver = optx.GaussNewton(rtol=rtol, atol=atol) if method == "gn" else optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(problem.residual, solver, x0, args, max_steps=max_steps, throw=False)
+    x = sol.value
+    r = problem.residual(x, args)
+    jac = jax.jacfwd(problem.residual)(x, args)
+    jtj = jac.T @ jac
+    cov = jnp.linalg.inv(jtj)
+    dv = jax.jacfwd(lambda z: problem.values(z))(x)  # [P_free, P]
+    nat = problem.values(x)
+    if problem.scale:
+        nat = jnp.concatenate([nat, jnp.exp(x[-1:])])
+        dv = jnp.concatenate([dv, jnp.zeros((1, x.size)).at[0, -1].set(jnp.exp(x[-1]))])
+    sd = jnp.sqrt(jnp.maximum(jnp.einsum("ij,jk,ik->i", dv, cov, dv), 0.0))
+    y, use = args[0], args[2]
+    chi2 = jnp.sum(r[: y.size] ** 2)
+    ok = sol.result == optx.RESULTS.successful
+    return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov))
+
+
+@eqx.filter_jit
+def _solve_chunk(problem: Problem, x0, y, var, use, view, prior_mean, prior_w, *, method: str, max_steps: int,
+                 rtol: float, atol: float):
+    """One chunk of pixels: `_solve_one` vmapped. Compiled once per problem structure and chunk shape
+    (the tables and bases are traced arguments, so maps of other stacks reuse the program)."""
+    return jax.vmap(lambda *a: _solve_one(problem, a[0], a[1:], method, max_steps, rtol, atol))(
+        x0, y, var, use, view, prior_mean, prior_w)
+
+
+GN_STEPS = 12
+"""Gauss-Newton steps at most; pixels it does not converge on are solved by Levenberg-Marquardt.
+Measured on 64 x 64 model-made pixels from the candidate search's start: Gauss-Newton converged in
+a median 6 steps (at most 10) on all but 3 of 4096; Levenberg-Marquardt took 13-28 (at most 35), and
+a vmapped loop runs until its slowest pixel stops, so Gauss-Newton first made the map 3-5x faster."""
+LM_CHUNK = 32
+"""Pixels per vmapped Levenberg-Marquardt solve (the few pixels Gauss-Newton did not converge on)."""
+CANDIDATES = 128
+"""Starting points tried per pixel before the solve (`_initial`)."""
+SPREAD = 2.5
+"""Half-width [unconstrained units] of the box of starting points around the scene's values."""
+
+
+@eqx.filter_jit
+def _candidate_table(problem: Problem, xs):
+    """R per candidate, view bin and band [K, V, bands] (the model without the scale)."""
+    nv = problem.white.num_views
+    eye = jnp.eye(nv)
+    return jax.vmap(lambda x: jax.vmap(lambda v: jnp.exp(problem.model(x, v)[0]))(eye))(xs)
+
+
+@jax.jit
+def _best_candidate(rho, y, w):
+    """Per pixel the candidate of least chi^2 (with its least-squares scale when the scale is free);
+    `rho` [K, bands] the candidates' model values."""
+    rho = rho[None]
+    wy = (w * y)[:, None, :]
+    a = jnp.sum(wy * rho, -1)
+    b = jnp.sum(w[:, None, :] * rho * rho, -1)
+    chi2_scaled = jnp.sum(w * y * y, -1)[:, None] - a * a / jnp.maximum(b, 1e-300)
+    k = jnp.argmin(chi2_scaled, axis=1)
+    scale = jnp.take_along_axis(a / jnp.maximum(b, 1e-300), k[:, None], 1)[:, 0]
+    chi2_plain = jnp.sum(w[:, None, :] * (rho - y[:, None, :]) ** 2, -1)
+    return k, scale, jnp.argmin(chi2_plain, axis=1)
+
+
+def _initial(problem: Problem, tissue, y, var, use, view, chunk: int) -> np.ndarray:
+    """Initial x per pixel: the best of the scene's values and `CANDIDATES` - 1 quasi-random points
+    (scrambled Halton, a fixed seed) within +-`SPREAD` around them in unconstrained coordinates, by
+    chi^2 with the least-squares scale for each (a coarse global search, so that Levenberg-Marquardt
+    starts near the minimum and needs few steps)."""
+    from scipy.stats import qmc
+
+    readers = free_parameters(tissue, problem.spectra.names)
+    x_free = np.array([float(p.to_unconstrained(np.asarray(r.where(tissue)).reshape(-1)[0]))
+                       for p, r in zip(problem.parameters, readers)])
+    offsets = (2.0 * qmc.Halton(d=x_free.size, scramble=True, seed=0).random(CANDIDATES - 1) - 1.0) * SPREAD
+    xs = np.concatenate([x_free[None], x_free[None] + offsets])
+    # the candidates seen from the map's mean viewing direction (the start need not be exact)
+    rho = jnp.einsum("v,kvb->kb", jnp.asarray(view.mean(0)), _candidate_table(problem, jnp.asarray(xs)))
+    w = np.where(use, 1.0 / np.where(var > 0, var, np.inf), 0.0)
+    best, scale = np.zeros(y.shape[0], np.int64), np.ones(y.shape[0])
+    for lo in range(0, y.shape[0], chunk):
+        sl = slice(lo, lo + chunk)
+        k_scaled, s, k_plain = (np.asarray(a) for a in _best_candidate(rho, jnp.asarray(y[sl]), jnp.asarray(w[sl])))
+        best[sl], scale[sl] = (k_scaled, s) if problem.scale else (k_plain, 1.0)
+    x = xs[best]
+    if not problem.scale:
+        return x
+    good = scale > 0
+    fallback = float(np.median(scale[good])) if good.any() else 1.0
+    return np.concatenate([x, np.log(np.where(good, scale, fallback))[:, None]], 1)
+
+
+def _neighbour_mean(x: np.ndarray, height: int, width: int, good: np.ndarray) -> np.ndarray:
+    """Mean of each pixel's 4 neighbours' x [H*W, P] among `good` pixels (itself where none is)."""
+    xs = x.reshape(height, width, -1)
+    ok = good.reshape(height, width, 1).astype(np.float64)
+    pad_x = np.pad(xs * ok, ((1, 1), (1, 1), (0, 0)))
+    pad_ok = np.pad(ok, ((1, 1), (1, 1), (0, 0)))
+    total = pad_x[:-2, 1:-1] + pad_x[2:, 1:-1] + pad_x[1:-1, :-2] + pad_x[1:-1, 2:]
+    count = pad_ok[:-2, 1:-1] + pad_ok[2:, 1:-1] + pad_ok[1:-1, :-2] + pad_ok[1:-1, 2:]
+    return np.where(count > 0, total / np.maximum(count, 1), xs).reshape(height * width, -1)
+
+
+def _run(problem, arrays, pixels, method, max_steps, chunk, rtol, atol, progress):
+    """`_solve_chunk` over `pixels` (indices) in chunks of `chunk` (the last padded by repetition);
+    the outputs as numpy arrays, one row per pixel of `pixels`."""
+    outs = []
+    chunk = min(chunk, LM_CHUNK) if method == "lm" else chunk  # fixed: one compilation whatever the count
+    for lo in range(0, pixels.size, chunk):
+        idx = pixels[lo:lo + chunk]
+        idx = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])
+        res = _solve_chunk(problem, *[jnp.asarray(a[idx]) for a in arrays], method=method, max_steps=int(max_steps),
+                           rtol=float(rtol), atol=float(atol))
+        outs.append([np.asarray(r)[: min(chunk, pixels.size - lo)] for r in res])
+        if progress is not None:
+            progress(min(lo + chunk, pixels.size), pixels.size)
+    return [np.concatenate(o) for o in zip(*outs)]
+
+
+def _no_where(tissue):
+    raise AssertionError("maps: parameters are set through PixelSpectra, not tree_at")
+
+
+def _as_measurement(measured):
+    from ..fit import Measurement
+
+    if isinstance(measured, Measurement):
+        return measured
+    from ..io import MeasuredStack, measurement
+
+    if isinstance(measured, MeasuredStack):
+        return measurement(measured)
+    raise TypeError(f"measured is a {type(measured).__name__}; allowed a tissuefit.fit.Measurement or a "
+                    "tissuefit.io.MeasuredStack")
+
+
+def setup(measured, model, free, *, white=None, scale=True, view=1.0):
+    """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs."""
+    from ..scene import SpectralTissue
+
+    m = _as_measurement(measured)
+    if not isinstance(model, SpectralTissue):
+        raise TypeError(f"model is a {type(model).__name__}; allowed a SpectralTissue (its top layer's spectral "
+                        "models and values: the per-pixel model and the initial guess)")
+    nb = model.bands.num_bands
+    if m.shape[0] != nb:
+        raise ValueError(f"measured has {m.shape[0]} bands; the model's band grid has {nb}")
+    if m.wavelengths is not None and not np.allclose(m.wavelengths, model.bands.wavelengths, atol=1e-6):
+        raise ValueError(f"measured wavelengths {m.wavelengths.tolist()} nm differ from the model's band centres "
+                         f"{model.bands.wavelengths.tolist()} nm")
+    thickness = np.asarray(model.geometry.thickness, np.float64).reshape(-1)
+    if model.num_layers != 1 or np.isfinite(thickness[0]):
+        raise ValueError(f"model has {model.num_layers} layer(s), the top {thickness[0]:g} cm thick; the white Monte Carlo "
+                         "model is of one semi-infinite layer (thickness inf)")
+    if abs(float(model.geometry.n_above) - 1.0) > 1e-9:
+        raise ValueError(f"model.n_above = {float(model.geometry.n_above):g}; the white Monte Carlo model has air (1) above")
+    # `where` is only needed to read the initial values: a shared placeholder keeps the parameters
+    # equal between calls, so that maps with the same structure reuse one compiled solver
+    parameters = tuple(dataclasses.replace(p, where=_no_where) for p in free_parameters(model, free))
+    white = model_for_tissue(model) if white is None else white
+    if not isinstance(white, WhiteModel):
+        raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
+    spectra = PixelSpectra(model, parameters)
+    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale))
+    _, height, width = m.shape
+    cos = np.broadcast_to(np.asarray(view, np.float64), (height, width)) if view is not None else None
+    vw = (view_weights(cos, white.cos_edges).reshape(height * width, -1) if cos is not None
+          else np.broadcast_to(view_weights(None, white.cos_edges), (height * width, white.num_views)))
+    return m, problem, np.ascontiguousarray(vw)
+
+
+@float64
+def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool = True, view=1.0,
+        smoothness: float | None = None, passes: int = 2, chunk: int = 256, max_steps: int = 100,
+        rtol: float = 1e-6, atol: float = 1e-8, progress=None) -> MapResult:
+    """Per-pixel parameter maps of a measured stack (module docstring).
+
+    - `measured`: a `tissuefit.fit.Measurement` (data, noise variance, mask [bands, H, W]) or a
+      prepared `tissuefit.io.MeasuredStack` (it needs a noise model).
+    - `model`: a `SpectralTissue`: its top layer's spectral models are the per-pixel model, their
+      values the initial guess and the values of everything not free; g and n its white Monte
+      Carlo node.
+    - `free`: names of the top layer's coefficients (`blood_fraction`, `saturation` /
+      `blood_saturation`, `a`, `b`, `c_ppix`, `mua`, ...; tissuefit.fit names).
+    - `white`: a `WhiteModel` (default: `model_for_tissue(model)`, built once and cached on disk).
+    - `scale`: fit a per-pixel scale (irradiance x calibration; default on).
+    - `view`: cosine of each pixel's viewing angle against the surface normal, scalar or [H, W]
+      (default 1: looking straight down); None compares with the hemispherical reflectance.
+    - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
+      neighbours' mean (None: independent pixels); `passes` solves when it is on.
+    - `chunk`: pixels per vmapped solve (memory); `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
+    Returns a `MapResult`.
+    """
+    t0 = time.perf_counter()
+    check_positive_int("chunk", chunk, high=2**20)
+    check_positive_int("max_steps", max_steps, high=10_000)
+    check_positive_int("passes", passes, high=100)
+    check_range("rtol", rtol, unit="-", low=0.0, low_open=True)
+    check_range("atol", atol, unit="-", low=0.0, low_open=True)
+    if smoothness is not None:
+        check_range("smoothness", smoothness, unit="unconstrained units", low=0.0, low_open=True)
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    nb, height, width = m.shape
+    npx = height * width
+    y = np.ascontiguousarray(m.data.reshape(nb, -1).T)
+    use = np.ascontiguousarray(m.mask.reshape(nb, -1).T)
+    var = np.ascontiguousarray(np.where(use, m.variance.reshape(nb, -1).T, 1.0))
+    y = np.where(use, y, 0.0)
+    chunk = int(max(1, min(chunk, npx)))
+    t_init = time.perf_counter()
+    x0 = _initial(problem, model, y, var, use, vw, max(chunk, 4096))
+    timings = {"setup": t_init - t0, "start": time.perf_counter() - t_init, "gauss_newton": 0.0, "levenberg_marquardt": 0.0}
+    nx = x0.shape[1]
+    prior_w = np.zeros((npx, nx))
+    prior_mean = np.zeros((npx, nx))
+    npass = 1 if smoothness is None else max(1, int(passes))
+    x, flags = x0, np.zeros(npx, np.uint8)
+    for k in range(npass):
+        if k > 0:
+            prior_mean = _neighbour_mean(x, height, width, flags == 0)
+            prior_w = np.zeros((npx, nx))
+            prior_w[:, : len(problem.parameters)] = 1.0 / float(smoothness)
+        arrays = (x0, y, var, use, vw, prior_mean, prior_w)
+        # Gauss-Newton over every pixel; Levenberg-Marquardt (from the same start) over the pixels where it
+        # did not converge, gathered into chunks of their own (`_run`)
+        t = time.perf_counter()
+        out = _run(problem, arrays, np.arange(npx), "gn", GN_STEPS, chunk, rtol, atol, progress)
+        timings["gauss_newton"] += time.perf_counter() - t
+        retry = np.flatnonzero(~out[5] | ~np.all(np.isfinite(out[0]), 1))
+        t = time.perf_counter()
+        if retry.size:
+            again = _run(problem, arrays, retry, "lm", max_steps, chunk, rtol, atol, None)
+            for o, a in zip(out, again):
+                o[retry] = a
+            out[6][retry] += GN_STEPS
+        timings["levenberg_marquardt"] += time.perf_counter() - t
+        nat, sd, x, chi2, nuse, ok, steps, finite = out
+        lm_pixels = int(retry.size)
+        flags = np.zeros(npx, np.uint8)
+        flags[~ok] |= FLAG_SOLVER
+        squashed = np.array([p._squashed() for p in problem.parameters] + ([False] if scale else []))
+        flags[np.any(squashed & (np.abs(x) > 20.0), 1)] |= FLAG_BOUND
+        flags[~finite | ~np.all(np.isfinite(nat), 1) | ~np.all(np.isfinite(sd), 1)] |= FLAG_SINGULAR
+        flags[nuse <= nx] |= FLAG_MASKED
+        x0 = x
+    names = [p.name.split(".", 1)[1] for p in problem.parameters] + (["scale"] if scale else [])
+    units = [p.units for p in problem.parameters] + (["(measured units)"] if scale else [])
+    dof = np.maximum(nuse - nx, 1)
+    return MapResult(names=tuple(names), units=tuple(units),
+                     values=nat.T.reshape(nx, height, width), sigma=sd.T.reshape(nx, height, width),
+                     flags=flags.reshape(height, width), chi2=chi2.reshape(height, width),
+                     residual_rms=np.sqrt(chi2 / np.maximum(nuse, 1)).reshape(height, width),
+                     reduced_chi2=(chi2 / dof).reshape(height, width), steps=steps.reshape(height, width),
+                     seconds=time.perf_counter() - t0,
+                     settings=dict(timings=timings, levenberg_marquardt_pixels=lm_pixels, scale=bool(scale), smoothness=smoothness,
+                                   passes=npass, chunk=chunk,
+                                   max_steps=int(max_steps), rtol=float(rtol), atol=float(atol),
+                                   white=dict(g_nodes=list(problem.white.g_nodes), n_nodes=list(problem.white.n_nodes),
+                                              photons=problem.white.photons, a_floor=problem.white.a_floor,
+                                              seed=problem.white.seed)))
+
+
+@float64
+def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, max_steps=100, rtol=1e-6, atol=1e-8):
+    """The reference: the same least squares, one pixel at a time (a Python loop of single-pixel
+    optimistix solves, Gauss-Newton then Levenberg-Marquardt where it fails; no vmap, no chunks).
+    Returns (values [P, H, W], sigma [P, H, W])."""
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    nb, height, width = m.shape
+    y = m.data.reshape(nb, -1).T
+    use = m.mask.reshape(nb, -1).T
+    var = np.where(use, m.variance.reshape(nb, -1).T, 1.0)
+    y = np.where(use, y, 0.0)
+    x0 = _initial(problem, model, y, var, use, vw, 4096)
+    nx = x0.shape[1]
+    vals, sds = [], []
+    gn = jax.jit(lambda x, *a: _solve_one(problem, x, a, "gn", GN_STEPS, rtol, atol))
+    lm = jax.jit(lambda x, *a: _solve_one(problem, x, a, "lm", max_steps, rtol, atol))
+    for i in range(height * width):
+        args = (jnp.asarray(y[i]), jnp.asarray(var[i]), jnp.asarray(use[i]), jnp.asarray(vw[i]), jnp.zeros(nx), jnp.zeros(nx))
+        out = gn(jnp.asarray(x0[i]), *args)
+        if not bool(out[5]) or not np.all(np.isfinite(np.asarray(out[0]))):
+            out = lm(jnp.asarray(x0[i]), *args)
+        vals.append(np.asarray(out[0]))
+        sds.append(np.asarray(out[1]))
+    return np.asarray(vals).T.reshape(nx, height, width), np.asarray(sds).T.reshape(nx, height, width)

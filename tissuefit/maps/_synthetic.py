@@ -1,0 +1,45 @@
+"""Stacks made by the local model itself: known truth for tests, the demo and the speed benchmark."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._setup import float64
+from ._solve import setup
+
+
+@float64
+def model_stack(model, free, values, *, white=None, scale=None, view=1.0) -> np.ndarray:
+    """The model's stack [bands, H, W]: the top layer of `model` (a SpectralTissue) with the free
+    parameters `free` at `values` [P, H, W] (natural units), times `scale` [H, W] (default 1), seen
+    at viewing cosine `view`."""
+    from ..fit import Measurement
+
+    values = np.asarray(values, np.float64)
+    p, height, width = values.shape
+    nb = model.bands.num_bands
+    dummy = Measurement(np.ones((nb, height, width)), np.ones((nb, height, width)))
+    _, problem, vw = setup(dummy, model, free, white=white, scale=False, view=view)
+    if p != len(problem.parameters):
+        raise ValueError(f"values has {p} maps for {len(problem.parameters)} free parameters")
+    flat = values.reshape(p, -1).T
+
+    def one(v, w):
+        mua, mus, g = problem.spectra.properties(v)
+        ly, _ = problem.white.log_reflectance(mua, mus, g, problem.n, w)
+        return jnp.exp(ly)
+
+    out = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(flat), jnp.asarray(vw))).T.reshape(nb, height, width)
+    return out if scale is None else out * np.asarray(scale, np.float64)
+
+
+def camera_noise(stack, *, rng: np.random.Generator, peak_counts: float = 3000.0, read_noise: float = 2.0):
+    """Poisson-Gaussian camera noise on `stack` scaled to `peak_counts` at its brightest sample:
+    (counts [bands, H, W], variance of the noise model a = 1, b = read_noise^2 evaluated at the
+    noise-free counts)."""
+    stack = np.asarray(stack, np.float64)
+    mean = stack * (peak_counts / np.max(stack))
+    counts = rng.poisson(np.maximum(mean, 0.0)) + rng.normal(0.0, read_noise, stack.shape)
+    return counts, mean + read_noise**2
