@@ -413,7 +413,7 @@ def refill_sites(lanes, acc, medium, sites: EmissionSites, words, end, config: S
         sleft=zeros, layer=layer, medium=sites.medium[site].astype(jnp.int32), band=band.astype(jnp.int32),
         converted=jnp.ones(pos.shape[:1], bool), status=jnp.where(total > 0, ALIVE, KILLED).astype(jnp.int32),
         pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(pos.shape[:1], jnp.int32),
-        origin=sites.origin[site].astype(jnp.int64), dlog_s=dlog_s, mis=jnp.ones_like(zeros),
+        origin=sites.origin[site].astype(jnp.int64), dlog_s=dlog_s, mis=None if lanes.mis is None else jnp.ones_like(zeros),
     )
     if config.image.lobe:
         new, acc = _lobe_from_sites(new, acc, medium, config, tissue, start & (total > 0))

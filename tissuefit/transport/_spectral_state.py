@@ -106,7 +106,7 @@ class _Lanes(NamedTuple):
     steps: Array
     origin: Array | None = None  # image: the photon whose launch this light descends from (its batch)
     dlog_s: Array | None = None  # image tangents, from sites: [lanes, slots, K] d log(spectrum) per direction
-    mis: Array | None = None  # image: the weight of the next interaction's scattered light (`_nee.py`; 1 if not direct)
+    mis: Array | None = None  # camera lobe: the weight of the next interaction's scattered light (`_nee.py`; 1 if not direct)
 
 
 class _Buffer(NamedTuple):
@@ -312,5 +312,5 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
         status=jnp.full(lanes, IDLE, jnp.int32), pid=jnp.zeros(lanes, jnp.int64), rng=(zu, zu, zu, zu),
         heat=zf, roulette=zf, steps=zi, origin=None if config.image is None else jnp.zeros(lanes, jnp.int64),
         dlog_s=jnp.zeros((lanes, config.slots, config.tangents), dtype) if config.tangents and config.launch_sites else None,
-        mis=None if config.image is None else jnp.ones(lanes, dtype),
+        mis=jnp.ones(lanes, dtype) if config.image is not None and config.image.lobe else None,
     )
