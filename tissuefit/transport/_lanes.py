@@ -393,7 +393,7 @@ def _step(lanes: _Lanes, acc: _Acc, medium: _Medium, tallies: TallySpec, options
         onehot = jax.nn.one_hot(layer, layers, dtype=dtype)
         upd["path_len"] = lanes.path_len + onehot * jnp.where(stuck, 0.0, run)[:, None]
         upd["scatters"] = lanes.scatters + onehot * interact.astype(dtype)[:, None]
-        score = jnp.where(interact, phys.hg_score(g, cos_s), 0.0)
+        score = jnp.where(interact, phys.hg_score(g, xi_a), 0.0)
         upd["score"] = lanes.score + onehot * score[:, None]
     before = lanes  # the photon arriving at this step (deposit statistics read it)
     new = lanes._replace(**upd)

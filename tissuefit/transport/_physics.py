@@ -50,12 +50,22 @@ def sample_hg_cos(g: Array, xi: Array) -> Array:
     return jnp.clip(jnp.where(small, 2.0 * xi - 1.0, cos_hg), -1.0, 1.0)
 
 
-def hg_score(g: Array, cos_t: Array) -> Array:
-    """d/dg log p_HG(cos_t; g) for the normalised Henyey–Greenstein phase function.
+def hg_score(g: Array, xi: Array) -> Array:
+    """d/dg log p_HG(mu; g) at the deflection cosine mu that `sample_hg_cos(g, xi)` draws from `xi`.
 
-    p(mu) = (1 - g^2) / (2 (1 + g^2 - 2 g mu)^(3/2)) over mu in [-1, 1].
+    p(mu) = (1 - g^2) / (2 D^(3/2)) over mu in [-1, 1], D = 1 + g^2 - 2 g mu, so the score is
+    -2 g / (1 - g^2) - 3 (g - mu) / D. Evaluated at mu, D and g - mu cancel catastrophically near
+    |g| = 1 (D ~ (1 - |g|)^2 at the peak: 1e-6 at |g| = 0.999, below float32's resolution of 1 + g^2),
+    which biased float32 g gradients several-fold there. The inverse CDF gives D = t^2 with
+    t = (1 - g^2) / s, s = 1 + g nu, nu = 2 xi - 1, and then the score is exactly
+
+        (3 nu (1 + s) - g) / (2 (1 - g^2)),
+
+    with no cancellation and no division by g (it tends to 3 nu = 3 mu as g -> 0).
     """
-    return -2.0 * g / (1.0 - g * g) - 3.0 * (g - cos_t) / (1.0 + g * g - 2.0 * g * cos_t)
+    nu = 2.0 * xi - 1.0
+    s = 1.0 + g * nu
+    return (3.0 * nu * (1.0 + s) - g) / (2.0 * (1.0 - g) * (1.0 + g))
 
 
 def spin(ux: Array, uy: Array, uz: Array, cos_t: Array, psi_xi: Array) -> tuple[Array, Array, Array]:

@@ -290,7 +290,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         # HG score of this scattering: the g factor of the replayed weight (replay, image tangents)
         scatter = onehot & (interact & ~convert)[:, None]
         score_in = lanes.score
-        score = lanes.score + jnp.where(scatter, phys.hg_score(g_c, cos_s)[:, None], 0.0)
+        score = lanes.score + jnp.where(scatter, phys.hg_score(g_c, xi_a)[:, None], 0.0)
         if config.history:
             # a conversion closes the excitation segment: keep it (the replay needs its band's
             # weight ratio) and start the emission segment's statistics from zero
