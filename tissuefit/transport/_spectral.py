@@ -27,7 +27,7 @@ from ._records import REPLAY_FIELDS, PhotonRecords, RecordSpec
 from ._spectral_lanes import harvest, refill, step
 from ._spectral_state import SpectralConfig, idle_lanes, medium_arrays, zeros_acc
 from ._spectral_weights import band_weights
-from ._trace import MAX_PHOTONS, TraceState, run_lanes
+from ._trace import MAX_PHOTONS, TAIL_SHRINK, TraceState, run_lanes
 
 Mode = Literal["auto", "per_band", "shared"]
 
@@ -203,6 +203,10 @@ class SpectralKernel(eqx.Module):
     """The spectral lanes behind `_trace._loop`'s kernel interface."""
 
     config: SpectralConfig = eqx.field(static=True)
+
+    # a spectral step (every band's weight, camera connections, path statistics) is costly enough that
+    # the tail's lanes are compacted (`_trace.TAIL_SHRINK`)
+    tail_shrink = TAIL_SHRINK
 
     @property
     def options(self) -> TraceOptions:
