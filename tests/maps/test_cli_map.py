@@ -7,7 +7,8 @@ import pytest
 
 from tissuefit import io
 from tissuefit.cli import main
-from tissuefit.maps import camera_noise, model_stack, read_maps
+from tissuefit.io import read_maps
+from tissuefit.maps import camera_noise, model_stack
 from tissuefit.scene import DEFAULT_BANDS
 
 from .conftest import mucosa

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from tissuefit.fit import Measurement
+from tissuefit.io import read_maps, write_maps
 from tissuefit.maps import (
     PixelSpectra,
     camera_noise,
@@ -14,9 +15,7 @@ from tissuefit.maps import (
     map as map_stack,
     map_reference,
     model_stack,
-    read_maps,
     reference_properties,
-    write_maps,
 )
 from tissuefit.scene import DEFAULT_BANDS, Blood, ConstantAbsorption, LayerOptics, PowerLawScattering, SpectralTissue, protoporphyrin_ix
 

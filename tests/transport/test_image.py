@@ -30,7 +30,12 @@ def _blocks(batches):
     return np.stack([batches.sum((-2, -1))] + [q.sum((-2, -1)) for q in quads], axis=-1)
 
 
-@pytest.mark.parametrize("lobe", [False, True])
+# without the lobe (not the default): slow, ~90 s of the default suite's 2-core CI budget; the lobe's
+# absence is still compared image for image in test_camera_lobe_keeps_the_image_with_a_region_and_two_layers
+NO_LOBE_SLOW = pytest.param(False, marks=pytest.mark.slow, id="False")
+
+
+@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
 def test_image_matches_the_brute_force_reference_with_fluorescence(lobe):
     """Scattered light (band 0) and fluorescence (band 1: emitted straight to the camera, and
     scattered before it escapes) against the per-photon tracer with sampled conversions.
@@ -92,7 +97,7 @@ def test_floodlit_image_is_the_angle_resolved_reflectance(lobe):
     assert chi2 < len(bins) + 4 * math.sqrt(2 * len(bins)), chi2
 
 
-@pytest.mark.parametrize("lobe", [False, True])
+@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
 def test_image_tangents_match_finite_differences(lobe):
     """The image's derivatives by path replay of every scored contribution (`tangents`), summed over
     the image per band, against central differences of independent traces at +-h, in the layer's

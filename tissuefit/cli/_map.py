@@ -23,7 +23,7 @@ def run(args) -> int:
         if args.smoothness is not None:
             check_range("--smoothness", args.smoothness, unit="unconstrained units", low=0.0, low_open=True)
         from ..fit import initial_values
-        from ..maps import build_model, free_parameters, map as map_stack, write_maps
+        from ..maps import build_model, free_parameters, map as map_stack
 
         tissue = initial_values(tissue, args.init)
         free_parameters(tissue, free)  # names checked before the model is built or the stack read
@@ -49,7 +49,7 @@ def run(args) -> int:
         raise InvalidInput(f"{args.measured}: {err}") from None
     extra = {"scene_file": str(args.scene), "measured": str(args.measured), "free": free, "init": args.init,
              "units": measured.units, "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}}
-    files = write_maps(out, result, extra=extra)
+    files = io.write_maps(out, result, extra=extra)
     args.partial.files += files
     summary = result.summary()
     if args.json:

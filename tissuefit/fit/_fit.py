@@ -139,17 +139,23 @@ def fit(
         if progress is not None:
             progress(state.history[-1])
     seconds = time.perf_counter() - t0
-    x = state.x
-    lin, sim, _ = problem.linearise(x, jax.random.fold_in(key, FINAL_KEY), config.photons)
-    unc = uncertainty(lin, layout, x, problem.variance, len(state.samples))
+    lin, sim, _ = problem.linearise(state.x, jax.random.fold_in(key, FINAL_KEY), config.photons)
+    unc = uncertainty(lin, layout, state.x, problem.variance, len(state.samples))
     if not np.all(np.isfinite(np.diag(unc.total))) and outcome.successful:
         outcome = Outcome.SINGULAR
     if throw and not outcome.successful:
         raise OutcomeError(outcome, f"after {state.retrace} re-traces")
+    return _result(problem, state, lin, sim, unc, outcome, seconds, tissue, options, scale)
+
+
+def _result(problem, state, lin, sim, unc, outcome: Outcome, seconds: float, tissue, options: RenderOptions,
+            scale: bool) -> FitResult:
+    """The `FitResult` of a finished loop: the final render's linearisation `lin` and image `sim`, the
+    uncertainties `unc`, the loop's `state` and `outcome`, and the settings that made it."""
+    layout, config, use, x = problem.layout, problem.config, problem.use, state.x
     std = np.sqrt(np.clip(np.diag(unc.total), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = unc.total / np.outer(std, std)
-    use = problem.use
     residuals = np.zeros(use.shape)
     residuals[use] = lin.residuals[: problem.data.size]
     measured_binned = np.zeros(use.shape)

@@ -2,7 +2,7 @@
 .mco output, JSON run records and their plots, multi-spectral stacks (TIFF + JSON sidecar,
 data_spec/stack.md) with their sRGB previews and contact sheets, measured stacks (sidecar, folder
 of bands, ENVI; data_spec/measured.md) with their calibration, band registration, dead-band masks
-and the comparison with a simulation, and fit reports.
+and the comparison with a simulation, fit reports and parameter maps.
 
 This is the only package that reads or writes files. Every reader validates before anything runs
 and names the file, the line or field, the value, the unit and the allowed range when it refuses.
@@ -29,6 +29,7 @@ _EXPORTS = {
     "parse_envi_header": "._envi", "read_envi": "._envi",
     "fit_band_metrics": "._fitreport", "fit_plot_png": "._fitreport", "fit_report": "._fitreport",
     "write_fit": "._fitreport", "write_fit_plot": "._fitreport", "write_fit_report": "._fitreport",
+    "maps_png": "._mapfile", "read_maps": "._mapfile", "write_maps": "._mapfile",
     "MeasuredStack": "._measured", "measurement": "._measured", "read_measured": "._measured",
     "wavelength_from_name": "._measured",
     "read_mci": "._mci",
@@ -74,6 +75,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the names above load on 
         write_fit_plot as write_fit_plot,
         write_fit_report as write_fit_report,
     )
+    from ._mapfile import maps_png as maps_png, read_maps as read_maps, write_maps as write_maps
     from ._mci import read_mci as read_mci
     from ._mco import read_mco as read_mco, write_mco as write_mco
     from ._measured import (

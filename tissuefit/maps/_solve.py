@@ -203,12 +203,8 @@ def _as_measurement(measured):
 
     if isinstance(measured, Measurement):
         return measured
-    from ..io import MeasuredStack, measurement
-
-    if isinstance(measured, MeasuredStack):
-        return measurement(measured)
-    raise TypeError(f"measured is a {type(measured).__name__}; allowed a tissuefit.fit.Measurement or a "
-                    "tissuefit.io.MeasuredStack")
+    raise TypeError(f"measured is a {type(measured).__name__}; allowed a tissuefit.fit.Measurement "
+                    "(tissuefit.io.measurement(stack) builds one from a prepared measured stack)")
 
 
 def setup(measured, model, free, *, white=None, scale=True, view=1.0):
@@ -252,8 +248,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
         rtol: float = 1e-6, atol: float = 1e-8, progress=None) -> MapResult:
     """Per-pixel parameter maps of a measured stack (module docstring).
 
-    - `measured`: a `tissuefit.fit.Measurement` (data, noise variance, mask [bands, H, W]) or a
-      prepared `tissuefit.io.MeasuredStack` (it needs a noise model).
+    - `measured`: a `tissuefit.fit.Measurement` (data, noise variance, mask [bands, H, W];
+      `tissuefit.io.measurement` builds one from a prepared measured stack with a noise model).
     - `model`: a `SpectralTissue`: its top layer's spectral models are the per-pixel model, their
       values the initial guess and the values of everything not free; g and n its white Monte
       Carlo node.
