@@ -293,7 +293,7 @@ def markdown(part: dict, rows: list[dict], pareto: dict, md_table, quick: bool) 
     if quick:
         lines += ["> QUICK SMOKE RUN: tiny photon counts and reference; not a measurement.", ""]
     lines += [
-        f"Measured {m['date']} (commit {m['git_commit']}{'-dirty' if m['git_dirty'] else ''}) in {part['seconds']:.0f} s; "
+        f"Measured {m['iso']} (commit {m['commit']}) in {part['seconds']:.0f} s; "
         f"1-minute load {m['loadavg_start'][0]:.2f} at start, {min(loads):.2f}–{max(loads):.2f} during, "
         f"{m['loadavg_end'][0]:.2f} at end.", "",
         "## Method", "",

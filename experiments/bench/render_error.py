@@ -12,7 +12,6 @@ measured: it is the default estimator's at 2 x REF launches). Public API only; r
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -23,23 +22,13 @@ from pathlib import Path
 import jax
 import numpy as np
 from _common import pareto_sentences  # experiments/_common.py (run.py puts experiments/ on sys.path)
+from render import run as _rx  # experiments/render/run.py: tissue(), one(photons, seed, size, options), group_error, GROUPS
 
 import tissuefit as tf
 from tissuefit.render import Endoscope, RenderOptions
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _render_experiment():
-    spec = importlib.util.spec_from_file_location("_experiments_render_run", ROOT / "experiments" / "render" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_rx = _render_experiment()  # tissue(), one(photons, seed, size, options), group_error(img, ref, mask, wl), GROUPS
 GROUPS = _rx.GROUPS
 PLOT_GROUPS = ("all", "red")
 
@@ -225,7 +214,7 @@ def markdown(part: dict, rows: list[dict], pareto: dict, md_table, quick: bool) 
     if quick:
         lines += ["> QUICK SMOKE RUN: tiny images and photon counts; not a measurement.", ""]
     lines += [
-        f"Measured {m['date']} (commit {m['git_commit']}{'-dirty' if m['git_dirty'] else ''}) in {part['seconds']:.0f} s; "
+        f"Measured {m['iso']} (commit {m['commit']}) in {part['seconds']:.0f} s; "
         f"1-minute load {m['loadavg_start'][0]:.2f} at start, {min(loads):.2f}–{max(loads):.2f} during, "
         f"{m['loadavg_end'][0]:.2f} at end.", "",
         "## Method", "",

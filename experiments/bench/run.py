@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib.util
 import json
 import math
 import os
@@ -55,30 +54,23 @@ tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX start
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
 MARK_BEGIN = "<!-- bench:begin -->"
 MARK_END = "<!-- bench:end -->"
-
-
-def _sibling(name: str):
-    """Import experiments/<name>/run.py as a module (for its provenance and table helpers)."""
-    spec = importlib.util.spec_from_file_location(f"_experiments_{name}_run", ROOT / "experiments" / name / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 sys.path[:0] = [str(HERE), str(HERE.parent)]
 import gradient_error  # noqa: E402  (part iii, beside this file)
 import render_error  # noqa: E402  (part ii)
-from _common import pareto_front, pareto_sentences, source_state  # noqa: E402  (experiments/_common.py)
-
-_throughput = _sibling("throughput")
-machine_info = _throughput.machine_info  # date, CPU, cores, RAM, jax/jaxlib, commit (+dirty), loadavg_start
-machine_line = _throughput._machine_line
-md_table = _throughput._table
-BENCHMARKS_HEADER = _throughput.BENCHMARKS_HEADER
-
+from _common import (  # noqa: E402  (experiments/_common.py)
+    BENCHMARKS,
+    machine,
+    machine_line,
+    md_table,
+    pareto_front,
+    pareto_sentences,
+    update_section,
+    upgrade_machine,
+)
 
 # --------------------------------------------------------------------------------------------
 # quantities: result -> (value, standard error) as 1-d arrays; `select` picks the elements that the
@@ -236,7 +228,7 @@ def load_or_make_reference(path: Path, cases, ref_photons: dict, force: bool, in
                                                    flush=True))
         res = jax.block_until_ready(res)
         seconds = time.perf_counter() - start
-        made = f"{info['date']} commit {info['git_commit']}{'-dirty' if info['git_dirty'] else ''}"
+        made = f"{info['iso']} commit {info['commit']}"
         out[case.name] = {"settings": want, "seconds": seconds, "made": made, "reused": False}
         stored[f"{case.name}/settings"] = np.array(key)
         stored[f"{case.name}/seconds"] = np.array(seconds)
@@ -643,9 +635,9 @@ def _load_line(info):
 def preface(data: dict, quick: bool) -> str:
     """The top of RESULTS.md: what the three parts are, and when each was measured."""
     lr = data.get("last_run")
-    when = {"(i)": data["machine"]["date"] if data.get("runs") else None,
-            "(ii)": data.get("render_part", {}).get("machine", {}).get("date"),
-            "(iii)": data.get("gradient_part", {}).get("machine", {}).get("date")}
+    when = {"(i)": data["machine"]["iso"] if data.get("runs") else None,
+            "(ii)": data.get("render_part", {}).get("machine", {}).get("iso"),
+            "(iii)": data.get("gradient_part", {}).get("machine", {}).get("iso")}
     lines = ["# Run time against error", "",
              f"`.venv/bin/python experiments/bench/run.py{' --quick' if quick else ''}` measures three parts (README.md "
              "beside this file): **(i)** rd and rd_r of the paper's tissue (`tf.trace`) against a high-photon reference; "
@@ -679,7 +671,7 @@ def results_markdown(info, rows, eff, par, refs, compiles, concl, quick) -> str:
         lines += ["> **QUICK SMOKE RUN** (`--quick`): tiny photon counts, few seeds, small reference. The numbers "
                   "say the script works, nothing more.", ""]
     lines += [
-        f"Machine: {machine_line(info)}.", "",
+        machine_line(info), "",
         f"Load: {info['loadavg_start'][0]:.2f} at start, {info['loadavg_end'][0]:.2f} at end, {_load_line(info)}. "
         "The machine may be shared (load above the core count means other work ran): timings are only as good "
         "as that.", "",
@@ -775,8 +767,8 @@ def results_markdown(info, rows, eff, par, refs, compiles, concl, quick) -> str:
 def benchmarks_section(info, rows, eff, par, quick) -> str:
     title = "Run time against error" + (" (QUICK SMOKE RUN, not a measurement)" if quick else "")
     n_key = 10**6 if any(r["photons"] == 10**6 for r in rows) else max(r["photons"] for r in rows)
-    lines = [MARK_BEGIN, f"## {title} — {info['date'][:10]}", "",
-             f"Machine: {machine_line(info)}; {_load_line(info)}.", "",
+    lines = [MARK_BEGIN, f"## {title} — {info['iso'][:10]}", "",
+             machine_line(info)[:-1] + f"; {_load_line(info)}.", "",
              "Script: `experiments/bench/run.py`; tables, method and conclusions in `experiments/bench/RESULTS.md`, "
              "plot `experiments/bench/time_vs_error.png`, raw numbers `experiments/bench/results.json`. "
              "Paper tissue; relative errors against a float64 reference (RMS over seeds); Rd(r) over r < "
@@ -807,25 +799,23 @@ def benchmarks_section(info, rows, eff, par, quick) -> str:
     return "\n".join(lines)
 
 
-def update_benchmarks(path: Path, section: str) -> None:
-    """Replace this experiment's section (between its markers) or append it; other sections untouched."""
-    text = path.read_text() if path.exists() else BENCHMARKS_HEADER
-    b, e = text.find(MARK_BEGIN), text.find(MARK_END)
-    if b >= 0 and e > b:
-        text = text[:b] + section + text[e + len(MARK_END):]
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text.rstrip("\n") + "\n")
-    os.replace(tmp, path)
-
-
 # --------------------------------------------------------------------------------------------
 
 
 PARTS = ("tallies", "render", "gradients")
 PART_KEYS = {"render": "render_part", "gradients": "gradient_part"}  # their keys in results.json
+
+
+def _upgrade(data: dict) -> dict:
+    """results.json's contents with every machine record in `machine()`'s keys (`upgrade_machine`: files
+    written before the experiments shared experiments/_common.py)."""
+    data = dict(data)
+    if "machine" in data:
+        data["machine"] = upgrade_machine(data["machine"])
+    for key in PART_KEYS.values():
+        if "machine" in data.get(key, {}):
+            data[key] = data[key] | {"machine": upgrade_machine(data[key]["machine"])}
+    return data
 
 
 def main(argv=None) -> int:
@@ -850,12 +840,12 @@ def main(argv=None) -> int:
     if args.render:
         return render(args)
 
-    old = json.loads((args.out / "results.json").read_text()) if (args.out / "results.json").exists() else {}
+    old = _upgrade(json.loads((args.out / "results.json").read_text())) if (args.out / "results.json").exists() else {}
     if old and bool(old.get("machine", {}).get("quick")) != q:
         old = {}  # never mix a quick run's parts with a full run's
     jnp.zeros(1).block_until_ready()
-    info = machine_info() | {"source": source_state()}  # the package may be edited while this runs
-    made = f"{info['date']} commit {info['git_commit']}{'-dirty' if info['git_dirty'] else ''}"
+    info = machine()  # with source_state(): the package may be edited while this runs
+    made = f"{info['iso']} commit {info['commit']}"
     print(f"time-versus-error benchmark{' (quick)' if q else ''}, parts {', '.join(args.only)}: "
           f"{machine_line(info)}", flush=True)
     t0 = time.perf_counter()
@@ -863,20 +853,20 @@ def main(argv=None) -> int:
     if "tallies" in args.only:
         data.update(run_tallies(args, info))
     elif old.get("runs"):
-        print(f"  part (i): carried over from {args.out / 'results.json'} (measured {old['machine']['date']})", flush=True)
+        print(f"  part (i): carried over from {args.out / 'results.json'} (measured {old['machine']['iso']})", flush=True)
     for part, module in (("render", render_error), ("gradients", gradient_error)):
         key = PART_KEYS[part]
         if part not in args.only:
             if key in old:
-                print(f"  part {part}: carried over (measured {old[key]['machine']['date']})", flush=True)
+                print(f"  part {part}: carried over (measured {old[key]['machine']['iso']})", flush=True)
             continue
         loads = []
-        m = {k: info[k] for k in ("git_commit", "git_dirty", "source")} | {
-            "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"), "loadavg_start": list(os.getloadavg())}
+        m = {k: info[k] for k in ("commit", "source")} | {
+            "iso": datetime.datetime.now().astimezone().isoformat(timespec="seconds"), "loadavg_start": list(os.getloadavg())}
         data[key] = module.run(args.out, q, args.new_reference, made, loads)
         data[key]["machine"] = m | {"loadavg_end": list(os.getloadavg()), "loadavg_samples": loads}
     seconds = time.perf_counter() - t0
-    data["last_run"] = {"date": info["date"], "parts": list(args.only), "seconds": seconds,
+    data["last_run"] = {"date": info["iso"], "parts": list(args.only), "seconds": seconds,
                         "loadavg_start": info["loadavg_start"], "loadavg_end": list(os.getloadavg())}
     if "machine" not in data:  # no part (i) anywhere: the machine of this run describes the file
         data["machine"] = info | {"quick": q}
@@ -917,10 +907,10 @@ def run_tallies(args, info) -> dict:
 
 def render(args) -> int:
     """Rebuild every output from the runs recorded in <out>/results.json (nothing is traced)."""
-    data = json.loads((args.out / "results.json").read_text())
+    data = _upgrade(json.loads((args.out / "results.json").read_text()))
     info = data["machine"]
     info.setdefault("rendered", []).append(datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
-    print(f"re-rendering {args.out / 'results.json'} (measured {info['date']})", flush=True)
+    print(f"re-rendering {args.out / 'results.json'} (measured {info['iso']})", flush=True)
     return write_outputs(args, data)
 
 
@@ -962,8 +952,8 @@ def write_outputs(args, data: dict) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(out, indent=1) + "\n")
     plot(args.out / "time_vs_error.png", panels,
-         f"tissuefit: relative error vs wall time ({info['cores_usable']} cores, commit "
-         f"{info['git_commit']}{'-dirty' if info['git_dirty'] else ''}, {info['date'][:10]})" + (" QUICK" if q else ""))
+         f"tissuefit: relative error vs wall time ({info['cores_usable']} cores, commit {info['commit']}, "
+         f"{info['iso'][:10]})" + (" QUICK" if q else ""))
     (args.out / "RESULTS.md").write_text("\n\n".join([preface(data, q)] + md).rstrip("\n") + "\n")
     text = section[0] if data.get("runs") else "\n".join([MARK_BEGIN, "## Run time against error", "", MARK_END])
     extra = "\n\n".join(section[1:] if data.get("runs") else section)
@@ -971,7 +961,7 @@ def write_outputs(args, data: dict) -> int:
     if lr:
         extra += (f"\n\nLast invocation {lr['date']}: parts {', '.join(lr['parts'])} in {lr['seconds']:.0f} s, 1-minute load "
                   f"{lr['loadavg_start'][0]:.2f} at start, {lr['loadavg_end'][0]:.2f} at end (each part's load in RESULTS.md).")
-    update_benchmarks(args.benchmarks, text.replace(MARK_END, (extra + "\n\n" if extra else "") + MARK_END))
+    update_section("bench", text.replace(MARK_END, (extra + "\n\n" if extra else "") + MARK_END), args.benchmarks)
     if lr:
         print(f"done in {lr['seconds']:.0f} s; load average {lr['loadavg_start'][0]:.2f} at start, "
               f"{lr['loadavg_end'][0]:.2f} at end", flush=True)

@@ -28,12 +28,9 @@ Steps (README.md beside this file says more):
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import hashlib
 import json
 import math
 import os
-import platform
 import re
 import resource
 import signal
@@ -53,7 +50,17 @@ tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX start
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
+sys.path.insert(0, str(HERE.parent))
+from _common import (  # noqa: E402  (experiments/_common.py)
+    BENCHMARKS,
+    files_sha256,
+    machine,
+    machine_line,
+    md_table,
+    update_section,
+    upgrade_machine,
+)
+
 MARK_BEGIN = "<!-- long_run:begin -->"
 MARK_END = "<!-- long_run:end -->"
 
@@ -280,63 +287,10 @@ def resume_check(photons: int, folder: Path, reference: dict | None, run_f32_inp
 # provenance and reports
 
 
-def _sh(*cmd) -> str | None:
-    try:
-        return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 TRACED_SOURCES = ("tissuefit/transport", "tissuefit/scene", "tissuefit/io/_checkpoint.py", "tissuefit/io/_report.py",
-                  "tissuefit/io/_scenefile.py", "tissuefit/io/_run.py", "tissuefit/cli.py", "tissuefit/_atomic.py")
-
-
-def source_digest() -> str:
-    """SHA-256 of the sources this experiment runs (tracer, scene, checkpoint, report, CLI): other
-    people may edit the working tree during a run; equal digests at start and end show they did not
-    touch these."""
-    digest = hashlib.sha256()
-    for entry in TRACED_SOURCES:
-        path = ROOT / entry
-        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path]:
-            digest.update(str(f.relative_to(ROOT)).encode() + b"\0" + f.read_bytes())
-    return digest.hexdigest()
-
-
-def machine_info() -> dict:
-    cpu = None
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                   if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    m = re.search(r"MemTotal:\s+(\d+) kB", Path("/proc/meminfo").read_text()) if Path("/proc/meminfo").exists() else None
-    import jaxlib
-
-    return {
-        "date": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "cpu": cpu or platform.processor() or "unknown",
-        "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "ram_gib": int(m.group(1)) / 2**20 if m else None,
-        "python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
-        "tissuefit": tf_cli_main.version(),
-        "xla_devices": [str(d) for d in jax.local_devices()],
-        "git_commit": _sh("git", "rev-parse", "--short", "HEAD"),
-        "git_dirty": bool(_sh("git", "status", "--porcelain", "--untracked-files=no", "--", "tissuefit")),
-        "niceness": os.nice(0),
-        "loadavg_start": list(os.getloadavg()),
-        "sources_start": source_digest(),
-    }
-
-
-def _machine_line(info) -> str:
-    ram = f"{info['ram_gib']:.0f} GiB RAM" if info["ram_gib"] else "RAM unknown"
-    commit = (info["git_commit"] or "unknown") + ("-dirty" if info["git_dirty"] else "")
-    load = f"; load average {info['loadavg_start'][0]:.2f} at start, {info['loadavg_end'][0]:.2f} at end" \
-        if info.get("loadavg_end") else ""
-    return (f"{info['cpu']}, {info['cores_usable']} cores ({len(info['xla_devices'])} XLA CPU devices), {ram}; "
-            f"jax {info['jax']} / jaxlib {info['jaxlib']}, Python {info['python']}; commit {commit}; "
-            f"{info['date']}; nice {info['niceness']}{load}")
+                  "tissuefit/io/_scenefile.py", "tissuefit/io/_run.py", "tissuefit/cli", "tissuefit/_atomic.py")
+"""The sources this experiment runs (tracer, scene, checkpoint, report, CLI), fingerprinted at its start and end
+(`files_sha256`): equal digests show nobody edited them during the run."""
 
 
 def _notes(info) -> str:
@@ -357,12 +311,6 @@ def _notes(info) -> str:
     else:
         notes.append(f"WARNING: the traced sources changed during the run ({start[:12]}... → {end[:12]}...).")
     return " ".join(notes)
-
-
-def _table(header, rows) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def _rss_points(samples, chunks) -> list[dict]:
@@ -397,14 +345,14 @@ def results_markdown(info, res, quick) -> str:
         lines += ["> **QUICK SMOKE RUN** (`--quick`): small photon counts. These numbers say the script works, "
                   "not what a 1e9-photon run does.", ""]
     lines += [
-        f"Machine: {_machine_line(info)}.", "",
+        machine_line(info), "",
         *([_notes(info), ""] if _notes(info) else []),
         "Generated by `experiments/long_run/run.py`" + (" --quick" if quick else "") + " (README.md beside it "
         "says what is measured and why). Scene: van de Hulst's slab (0.02 cm, n = 1, mua 10, mus 90 /cm, "
         f"g 0.75), pencil beam, float32 working precision, default options ({res['options']['lanes']} lanes), "
         "tallies rsp, rd, a, tt and rd_r (100 bins of 0.01 cm). "
         f"Whole experiment: {info['experiment_s']:.0f} s.", "",
-        "## Verdicts", "", _table(("what", "measured", "target", "verdict"), verdicts(res)), "",
+        "## Verdicts", "", md_table(("what", "measured", "target", "verdict"), verdicts(res)), "",
         "## 1. Calibration", "",
         f"{cal['photons']:,} photons (after compiling with 1000): {cal['seconds']:.2f} s, "
         f"{cal['photons_per_s']:,.0f} photons/s; energy residual {cal['totals']['energy_residual']:.3e}. "
@@ -415,12 +363,12 @@ def results_markdown(info, res, quick) -> str:
         f"steps per photon; a checkpoint (`tissuefit.io.save_trace_state`, {lr['checkpoint_bytes'] / 1024:.0f} KiB) "
         f"was written after every chunk, {lr['save_s_median'] * 1e3:.1f} ms median "
         f"({lr['save_s_total']:.1f} s in all); a tqdm bar showed the photons done.", "",
-        _table(("after chunk", "photons", "s", "RSS MiB", "peak RSS MiB (ru_maxrss)"),
+        md_table(("after chunk", "photons", "s", "RSS MiB", "peak RSS MiB (ru_maxrss)"),
                [(s["chunk"], f"{s['photons']:,}", f"{s['seconds']:.1f}", f"{s['rss_mb']:.1f}", f"{s['peak_rss_mb']:.1f}")
                 for s in lr["rss_points"]]), "",
         f"(Chunk 0: after the calibration, before the run. The process's peak before step 2 was "
         f"{lr['rss_points'][0]['peak_rss_mb']:.0f} MiB, mostly XLA and the compiled loop.)", "",
-        _table(("tally", "value", "standard error"),
+        md_table(("tally", "value", "standard error"),
                [(k, f"{lr['totals'][k]:.9f}" if k != "roulette" else f"{lr['totals'][k]:.3e}",
                  f"{lr['totals'].get(k + '_stderr', 0.0):.2e}") for k in ("rsp", "rd", "a", "tt", "roulette")]), "",
         f"Energy balance: rsp + rd + a + tt − roulette − 1 = {lr['totals']['energy_residual']:.3e} "
@@ -450,7 +398,7 @@ def results_markdown(info, res, quick) -> str:
         f"float32: step 2 ({lr['photons']:,} photons, seed {SEED}); float64: {pr['photons']:,} photons, seed "
         f"{SEED_F64}, {pr['seconds']:.1f} s ({pr['photons_per_s']:,.0f} photons/s). Independent keys, so "
         "z = (f32 − f64) / sqrt(se32² + se64²).", "",
-        _table(("tally", "float32", "float64", "difference", "z"),
+        md_table(("tally", "float32", "float64", "difference", "z"),
                [(k, f"{lr['totals'][k]:.7f}", f"{pr['f64'][k]:.7f}", f"{pr['diff'][k]:+.2e}", f"{pr['z'][k]:+.2f}")
                 for k in ("rd", "a", "tt")]), "",
         f"rd_r: chi² = {pr['rd_r_chi2']:.1f} over the {pr['rd_r_dof']} bins both runs reached "
@@ -472,25 +420,16 @@ def _rss_range(samples) -> str:
 def benchmarks_section(info, res) -> str:
     lr = res["long_run"]
     lines = [
-        MARK_BEGIN, f"## Long runs — {info['date'][:10]}", "",
-        f"Machine: {_machine_line(info)}.", "",
+        MARK_BEGIN, f"## Long runs — {info['iso'][:10]}", "",
+        machine_line(info), "",
         *([_notes(info), ""] if _notes(info) else []),
         "Script: `experiments/long_run/run.py`; tables in `experiments/long_run/RESULTS.md`, raw numbers in "
         "`experiments/long_run/results.json`. Van de Hulst's slab, float32 working precision, tallies rsp, rd, a, "
         f"tt, rd_r; {lr['photons']:,} photons in {lr['chunks']} chunks with a checkpoint after each.", "",
-        _table(("what", "measured", "target", "verdict"), verdicts(res)), "",
+        md_table(("what", "measured", "target", "verdict"), verdicts(res)), "",
         MARK_END,
     ]
     return "\n".join(lines)
-
-
-def update_benchmarks(path: Path, section: str) -> None:
-    """Replace this experiment's section between its markers (or append it); nothing else changes."""
-    text = path.read_text() if path.exists() else "# Benchmark results\n"
-    pattern = re.compile(re.escape(MARK_BEGIN) + r".*?" + re.escape(MARK_END), re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text.rstrip("\n") + "\n")
 
 
 # --------------------------------------------------------------------------------------------
@@ -519,13 +458,13 @@ def main(argv=None) -> int:
     bench_path = out / "BENCHMARKS.md" if q else BENCHMARKS
     if args.report_only:
         saved = json.loads((out / "results.json").read_text())
-        write_reports(saved["machine"], saved["results"], out, bench_path, saved["machine"]["quick"])
+        write_reports(upgrade_machine(saved["machine"]), saved["results"], out, bench_path, saved["machine"]["quick"])
         return 0
     scratch = out / "_scratch"  # ignored by git (/experiments/**/_scratch/)
     scratch.mkdir(parents=True, exist_ok=True)
 
-    info = machine_info()
-    print(f"long-run experiment{' (quick)' if q else ''}: {_machine_line(info)}", flush=True)
+    info = machine() | {"tissuefit": tf_cli_main.version(), "sources_start": files_sha256(TRACED_SOURCES)}
+    print(f"long-run experiment{' (quick)' if q else ''}: {machine_line(info)}", flush=True)
     t0 = time.perf_counter()
     (run32,) = tf.io.load_runs(write_scene(scratch, photons))
     res: dict = {"scene": tf.io.scene_to_dict(run32), "options": {"lanes": run32.options.lanes,
@@ -607,7 +546,7 @@ def main(argv=None) -> int:
           + ", ".join(f"{k} {v:+.2f}" for k, v in z.items()), flush=True)
 
     info["loadavg_end"] = list(os.getloadavg())
-    info["sources_end"] = source_digest()
+    info["sources_end"] = files_sha256(TRACED_SOURCES)
     info["experiment_s"] = time.perf_counter() - t0
     info["quick"] = q
     out.mkdir(parents=True, exist_ok=True)
@@ -616,7 +555,7 @@ def main(argv=None) -> int:
     print(f"done in {info['experiment_s']:.0f} s; wrote {out / 'RESULTS.md'}, {out / 'results.json'}, "
           f"updated {bench_path}", flush=True)
     print()
-    print(_table(("what", "measured", "target", "verdict"), verdicts(res)))
+    print(md_table(("what", "measured", "target", "verdict"), verdicts(res)))
     return 0
 
 
@@ -625,7 +564,7 @@ def write_reports(info, res, out: Path, bench_path: Path, quick: bool) -> None:
     section = benchmarks_section(info, res)
     if quick:
         section = section.replace("## Long runs —", "## Long runs (QUICK SMOKE RUN, not a measurement) —")
-    update_benchmarks(bench_path, section)
+    update_section("long_run", section, bench_path)
 
 
 if __name__ == "__main__":

@@ -31,13 +31,11 @@ Public API only (`tissuefit.photonmap`). Sections (README.md beside this file sa
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import os
-import platform
 import statistics
-import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -54,6 +52,9 @@ import tissuefit.photonmap as pm
 tissuefit.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from _common import machine, machine_line  # noqa: E402  (experiments/_common.py)
+
 ELL = 0.1  # cm, radial decay length of the exitance profile
 ZS = 0.05  # cm, depth decay length of the volume profile
 HALF = 0.3  # cm, half-width of the field of view / error region
@@ -337,25 +338,11 @@ def timing_section(h_law_s, h_law_v, repeats, seed, bands=21, n=300_000, k=50):
 # --------------------------------------------------------------------------------------------
 
 
-def machine() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    import jaxlib
-
-    return dict(date=subprocess.run(["date"], capture_output=True, text=True).stdout.strip(),
-                iso=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                nproc=subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip(), cpu=cpu,
-                jax=jax.__version__, jaxlib=jaxlib.__version__, devices=[str(d) for d in jax.local_devices()],
-                loadavg_start=list(os.getloadavg()))
-
-
 def write_report(res, path):
     s, v, t, mi = res["surface"], res["volume"], res["timing"], res["machine"]
     um = lambda x: "-" if x is None else f"{x * 1e4:.0f}"  # noqa: E731
     lines = [f"# Photon-map results ({'quick' if res['quick'] else 'full'} run)", "",
-             f"Machine: {mi['cpu']}, nproc {mi['nproc']}; jax {mi['jax']}; `date`: {mi['date']}; "
-             f"load average {mi['loadavg_start'][0]:.2f} at start, {mi['loadavg_end'][0]:.2f} at end; "
-             f"run time {res['seconds']:.0f} s" + (f" (timing rerun alone: {res['seconds_timing_only']:.0f} s)" if "seconds_timing_only" in res else "")
+             machine_line(mi)[:-1] + f"; run time {res['seconds']:.0f} s" + (f" (timing rerun alone: {res['seconds_timing_only']:.0f} s)" if "seconds_timing_only" in res else "")
              + f". Config: {res['config']}.", "",
              "## Surface: relative MISE against N and bandwidth (Epanechnikov, fixed radius)", "",
              "| N | h_opt (um) | relative RMSE at h_opt | relative MISE over the sweep h = " + ", ".join(um(h) for h in s["rows"][0]["h"]) + " um (first row; others scale as N^-1/6) |",

@@ -19,11 +19,10 @@ photon index, and the spread of the 16 reference runs) and the per-point relativ
 
 from __future__ import annotations
 
-import datetime
 import json
 import math
 import os
-import platform
+import sys
 import time
 from importlib.metadata import version
 from pathlib import Path
@@ -36,6 +35,9 @@ import tissuefit as tf
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from _common import machine  # noqa: E402  (experiments/_common.py)
+
 MUA, MUS, G = 2.0, 20.0, 0.0
 MUT = MUA + MUS
 D = 0.01
@@ -89,6 +91,7 @@ def compare(est, ref_runs) -> dict:
 
 def main():
     t0 = time.time()
+    where = machine()
     spectral, layered = tissue(), tissue().at_band(0)
     runs = [tf.trace(tf.Scene(layered), key=jax.random.key(SEEDS["reference"] + i), photons=REF_PHOTONS, tallies=TALLIES)
             for i in range(REF_RUNS)]
@@ -131,9 +134,7 @@ def main():
                          batches=BATCHES, reference=f"{REF_RUNS} x {REF_PHOTONS}", surface_photons=SURFACE_PHOTONS,
                          volume_photons=VOLUME_PHOTONS, surface_radii_cm=r_c[bins].round(4).tolist(),
                          volume_points_cm=np.c_[r, z].round(4).tolist(), kernel="epanechnikov", seeds=SEEDS)
-    out["machine"] = dict(platform=platform.platform(), nproc=os.cpu_count(), jax=jax.__version__,
-                          tissuefit=version("tissuefit"), date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                          load_average=os.getloadavg(), seconds=round(time.time() - t0, 1))
+    out["machine"] = where | dict(tissuefit=version("tissuefit"), loadavg_end=os.getloadavg(), seconds=round(time.time() - t0, 1))
     (HERE / "vs_tracer.json").write_text(json.dumps(out, indent=1))
     print(f"wrote {HERE / 'vs_tracer.json'} ({time.time() - t0:.0f} s)")
 

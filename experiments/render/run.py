@@ -42,7 +42,6 @@ import argparse
 import json
 import math
 import os
-import re
 import subprocess
 import sys
 import time
@@ -58,10 +57,9 @@ tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX start
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from _common import machine  # noqa: E402  (experiments/_common.py: machine, commit and sources)
+from _common import machine, update_section  # noqa: E402  (experiments/_common.py: machine, commit and sources)
 
 ROOT = HERE.parents[1]
-BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
 MARK_BEGIN, MARK_END = "<!-- render:begin -->", "<!-- render:end -->"
 BANDS = tf.DEFAULT_BANDS
 TARGET_RECORDS = 300_000
@@ -234,13 +232,6 @@ def write_results_md(res: dict, path: Path):
     path.write_text("\n".join(lines) + "\n")
 
 
-def update_benchmarks(path: Path, section: str) -> None:
-    text = path.read_text()
-    pattern = re.compile(re.escape(MARK_BEGIN) + r".*?" + re.escape(MARK_END), re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section
-    path.write_text(text.rstrip("\n") + "\n")
-
-
 def write_plot(res: dict, path: Path):
     import matplotlib
 
@@ -303,7 +294,7 @@ def main():
         write_results_md(res, HERE / "RESULTS.md")
         if "curve" in res:
             write_plot(res, HERE / "time_vs_error.png")
-        update_benchmarks(BENCHMARKS, benchmark_section(res))
+        update_section("render", benchmark_section(res))
         return
     size, pilot_n, curve_ns, target = 256, 100_000, [30_000, 100_000, 300_000, 600_000], TARGET_RECORDS
     if args.quick:
@@ -370,7 +361,7 @@ def main():
     if "curve" in res:
         write_plot(res, out / "time_vs_error.png")
     if not args.quick:
-        update_benchmarks(BENCHMARKS, benchmark_section(res))
+        update_section("render", benchmark_section(res))
     print(f"wrote {out / 'RESULTS.md'} ({res['seconds']:.0f} s)")
 
 

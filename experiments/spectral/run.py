@@ -13,10 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
+import sys
 import time
-from datetime import date
 from pathlib import Path
 
 import jax
@@ -26,7 +24,10 @@ import tissuefit as tf
 
 tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX starts
 
-HERE = Path(__file__).parent
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from _common import machine, machine_line  # noqa: E402  (experiments/_common.py)
+
 BANDS = tf.BandGrid.uniform(400, 720, 16)
 INF = float("inf")
 
@@ -119,10 +120,10 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args()
+    where = machine()
+    print(machine_line(where), flush=True)
     results = {
-        "date": date.today().isoformat(), "machine": platform.processor() or platform.machine(),
-        "cpus": len(os.sched_getaffinity(0)), "devices": [str(d) for d in jax.devices()], "jax": jax.__version__,
-        "photons": args.photons,
+        "machine": where, "photons": args.photons,
         "cost": cost_table(args.photons, args.repeats),
         "trade": trade_table(args.photons // 5, args.repeats),
     }

@@ -12,7 +12,7 @@ Measures (README.md beside this file says more):
   scenes   paper tissue and van de Hulst slab, float32 and float64, default tallies
   lanes    paper tissue float32 versus total lane count
   refill   paper tissue float32 versus steps_per_refill
-  devices  one device versus all local devices (tissuefit makes one XLA CPU device per core)
+  devices  one device versus all local devices (`tf.configure()` makes one XLA CPU device per core)
   cli      end to end: `tissuefit simulate data_spec/examples/paper_tissue.toml --photons 2000000 --json`
   tallies  default (rd_r) versus no resolved tallies versus all of tf.transport.TALLY_NAMES
 
@@ -26,12 +26,9 @@ min-max spread.
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import json
 import math
 import os
-import platform
-import re
 import statistics
 import subprocess
 import sys
@@ -48,7 +45,9 @@ tf.configure()  # float64 tallies, one XLA CPU device per core, before JAX start
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-BENCHMARKS = ROOT / "experiments" / "BENCHMARKS.md"
+sys.path.insert(0, str(HERE.parent))
+from _common import BENCHMARKS, machine, machine_line, md_table, update_section  # noqa: E402  (experiments/_common.py)
+
 CLI_SCENE = "data_spec/examples/paper_tissue.toml"
 
 SECTIONS = ("scenes", "lanes", "refill", "devices", "cli", "tallies")
@@ -64,7 +63,7 @@ MCML_NOTE = (
     "is quoted by the issue, not measured by us"
 )
 
-MARK_BEGIN = "<!-- throughput:begin -->"
+MARK_BEGIN = "<!-- throughput:begin -->"  # its section of BENCHMARKS.md (`update_section("throughput", ...)`)
 MARK_END = "<!-- throughput:end -->"
 
 
@@ -222,55 +221,6 @@ def _nice_ceil(x: float) -> int:
 
 
 # --------------------------------------------------------------------------------------------
-# machine and provenance
-
-
-def _sh(*cmd) -> str | None:
-    try:
-        return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
-def machine_info() -> dict:
-    cpu = None
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    ram_gib = None
-    try:
-        m = re.search(r"MemTotal:\s+(\d+) kB", Path("/proc/meminfo").read_text())
-        ram_gib = int(m.group(1)) / 2**20 if m else None
-    except OSError:
-        pass
-    commit = _sh("git", "rev-parse", "--short", "HEAD")
-    dirty = _sh("git", "status", "--porcelain", "--untracked-files=no")
-    import jaxlib
-
-    return {
-        "date": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "cpu": cpu or platform.processor() or "unknown",
-        "cores": os.cpu_count(),
-        "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "ram_gib": ram_gib,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "xla_devices": [str(d) for d in jax.local_devices()],
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "compilation_cache_dir": jax.config.jax_compilation_cache_dir,
-        "git_commit": commit,
-        "git_dirty": bool(dirty) if dirty is not None else None,
-        "loadavg_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
-
-
-# --------------------------------------------------------------------------------------------
 # reports
 
 
@@ -280,20 +230,6 @@ def _fmt_rate(x):
 
 def _fmt_s(x, digits=2):
     return f"{x:.{digits}f}" if x is not None else "–"
-
-
-def _commit_str(info):
-    c = info["git_commit"] or "unknown"
-    return c + ("-dirty" if info["git_dirty"] else "")
-
-
-def _machine_line(info):
-    ram = f"{info['ram_gib']:.0f} GiB RAM" if info["ram_gib"] else "RAM unknown"
-    load = info.get("loadavg_start")
-    load_s = f"; load average {load[0]:.2f} at start, {info['loadavg_end'][0]:.2f} at end" if load and info.get("loadavg_end") else ""
-    return (f"{info['cpu']}, {info['cores_usable']} cores ({len(info['xla_devices'])} XLA CPU devices), {ram}; "
-            f"jax {info['jax']} / jaxlib {info['jaxlib']}, Python {info['python']}; "
-            f"commit {_commit_str(info)}; {info['date']}{load_s}")
 
 
 def _find(records, section, **match):
@@ -329,12 +265,6 @@ def _targets(records) -> list[tuple[str, str, str, str]]:
     return rows
 
 
-def _table(headers, rows) -> str:
-    out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return "\n".join(out)
-
-
 def _trace_rows(recs):
     rows = []
     for r in recs:
@@ -365,7 +295,7 @@ def results_markdown(info, records, quick) -> str:
         lines += ["> **QUICK SMOKE RUN** (`--quick`): tiny photon counts, one repeat. These numbers say "
                   "the script works, not how fast tissuefit is.", ""]
     lines += [
-        f"Machine: {_machine_line(info)}.",
+        machine_line(info),
         "",
         "Generated by `experiments/throughput/run.py`" + (" --quick" if quick else "") + " (see README.md "
         "beside it). Times are the median of the timed repeats after a warm-up call; the spread is "
@@ -377,7 +307,7 @@ def results_markdown(info, records, quick) -> str:
         "",
         "## Targets",
         "",
-        _table(("what", "measured", "target", "verdict"), _targets(records)),
+        md_table(("what", "measured", "target", "verdict"), _targets(records)),
         "",
         f"(*) {MCML_NOTE}.",
         "",
@@ -385,7 +315,7 @@ def results_markdown(info, records, quick) -> str:
     for sec in ("scenes", "lanes", "refill", "devices"):
         recs = [r for r in records if r["section"] == sec]
         if recs:
-            lines += [f"## {SECTION_TITLES[sec]}", "", _table(TRACE_HEADERS, _trace_rows(recs)), ""]
+            lines += [f"## {SECTION_TITLES[sec]}", "", md_table(TRACE_HEADERS, _trace_rows(recs)), ""]
             if sec == "devices":
                 base = next((r for r in recs if r["devices"] == 1 and r["lanes"] == 16384), None)
                 full = next((r for r in recs if r["devices"] > 1), None)
@@ -402,7 +332,7 @@ def results_markdown(info, records, quick) -> str:
             "imports, scene parsing, compilation, tracing (the CLI splits the run into chunks of about 1e6 "
             "photons for its progress bar) and JSON output. The scene file requests rd_r and a_z tallies.",
             "",
-            _table(("photons", "median wall s", "min–max s (spread)", "photons/s end to end",
+            md_table(("photons", "median wall s", "min–max s (spread)", "photons/s end to end",
                     "trace s reported by the CLI (median, compile included)"),
                    [(f"{cli['photons']:,}", _fmt_s(cli["median_s"]),
                      f"{_fmt_s(cli['min_s'])}–{_fmt_s(cli['max_s'])} ({cli['spread_pct']:.1f}%)",
@@ -411,33 +341,24 @@ def results_markdown(info, records, quick) -> str:
         ]
     recs = [r for r in records if r["section"] == "tallies"]
     if recs:
-        lines += [f"## {SECTION_TITLES['tallies']}", "", _table(TRACE_HEADERS, _trace_rows(recs)), ""]
+        lines += [f"## {SECTION_TITLES['tallies']}", "", md_table(TRACE_HEADERS, _trace_rows(recs)), ""]
     short = [r for r in records if r.get("short_calls")]
     if short and not quick:
         lines += ["Note: some timed calls lasted under 2 s: " + ", ".join(r["label"] for r in short) + ".", ""]
     return "\n".join(lines)
 
 
-BENCHMARKS_HEADER = """# Benchmark results
-
-Measured results of the project's benchmarks, one section per experiment (the script under
-`experiments/<name>/` writes and replaces its own section). Every section names the machine (CPU,
-cores, RAM), the date, the jax/jaxlib versions and the git commit it measured ("-dirty": uncommitted
-changes to tracked files). Timings from different machines are not comparable.
-"""
-
-
 def benchmarks_section(info, records) -> str:
     lines = [
         MARK_BEGIN,
-        f"## Throughput — {info['date'][:10]}",
+        f"## Throughput — {info['iso'][:10]}",
         "",
-        f"Machine: {_machine_line(info)}.",
+        machine_line(info),
         "",
         "Script: `experiments/throughput/run.py`; full tables in `experiments/throughput/RESULTS.md`, raw "
         "numbers in `experiments/throughput/results.json`.",
         "",
-        _table(("what", "measured", "target", "verdict"), _targets(records)),
+        md_table(("what", "measured", "target", "verdict"), _targets(records)),
         "",
         f"(*) {MCML_NOTE}.",
         "",
@@ -460,20 +381,9 @@ def benchmarks_section(info, records) -> str:
         rows.append(("paper tissue, float32, best lane count", f"{_fmt_rate(best['photons_per_s'])} "
                      f"at {best['lanes']} lanes", f"{best['steps_per_s'] / 1e6:.1f}", "", ""))
     if rows:
-        lines += [_table(("configuration", "photons/s", "Msteps/s", "spread", "compile s"), rows), ""]
+        lines += [md_table(("configuration", "photons/s", "Msteps/s", "spread", "compile s"), rows), ""]
     lines.append(MARK_END)
     return "\n".join(lines)
-
-
-def update_benchmarks(path: Path, section: str) -> None:
-    text = path.read_text() if path.exists() else BENCHMARKS_HEADER
-    pattern = re.compile(re.escape(MARK_BEGIN) + r".*?" + re.escape(MARK_END), re.S)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: section, text)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text.rstrip("\n") + "\n")
 
 
 # --------------------------------------------------------------------------------------------
@@ -511,8 +421,8 @@ def main(argv=None) -> int:
         parser.error(f"--only: unknown section {unknown[0]!r}; allowed {','.join(SECTIONS)}")
 
     jnp.zeros(1).block_until_ready()  # start the backends, so the first compile time excludes it
-    info = machine_info()
-    print(f"throughput benchmark{' (quick)' if q else ''}: {_machine_line(info)}", flush=True)
+    info = machine()
+    print(f"throughput benchmark{' (quick)' if q else ''}: {machine_line(info)}", flush=True)
     if info["compilation_cache_dir"]:
         print(f"  note: JAX persistent compilation cache at {info['compilation_cache_dir']}: "
               "compile times may be cache hits", flush=True)
@@ -556,7 +466,7 @@ def main(argv=None) -> int:
     section = benchmarks_section(info, b.records)
     if q:
         section = section.replace("## Throughput —", "## Throughput (QUICK SMOKE RUN, not a measurement) —")
-    update_benchmarks(args.benchmarks, section)
+    update_section("throughput", section, args.benchmarks)
     print(f"done in {info['benchmark_seconds']:.0f} s; wrote {args.out / 'RESULTS.md'}, "
           f"{args.out / 'results.json'}, updated {args.benchmarks}", flush=True)
     print()

@@ -4,8 +4,10 @@
   fresh random numbers, unbiased Gauss–Newton steps from the render's batches (`Linearisation`),
   settled landing points averaged; written as a solver (`FitState`, `init`, `step`, `terminate`).
 - `Measurement`: the measured stack as arrays; `FitConfig`: photons, batches, binning, loop limits.
-- `FitParameter` (unconstrained coordinates: log, logistic between bounds, identity; priors) and
-  `parameters_from_names` (the command line's `--free` names).
+- `FitParameter` (unconstrained coordinates: log, logistic between bounds, identity; priors),
+  `parameters_from_names` and `scene_parameters` (the command line's `--free` names), `Layout` (where
+  each parameter sits in the flat unconstrained vector; `tissuefit.maps` sets a tissue's free values
+  with it and shares the `--free` names).
 The report (JSON, PNG) is written by `tissuefit.io` (`write_fit`, `fit_report`, `fit_plot_png`).
 """
 
@@ -19,7 +21,7 @@ from ._names import (
     parameters_from_names as parameters_from_names,
     scene_parameters as scene_parameters,
 )
-from ._parameters import TRANSFORMS as TRANSFORMS, FitParameter as FitParameter
+from ._parameters import TRANSFORMS as TRANSFORMS, FitParameter as FitParameter, Layout as Layout
 from ._result import FitResult as FitResult
 from ._solver import FitState as FitState, Problem as Problem, StepRecord as StepRecord, init as init, step as step, terminate as terminate
 from ._uncertainty import Uncertainty as Uncertainty, uncertainty as uncertainty

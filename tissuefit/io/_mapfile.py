@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_writer, write_text_atomic
-from ..maps import FLAG_BITS, MapResult
-from ..maps._result import FORMAT
+from ..maps import FLAG_BITS, MAPS_FORMAT, MapResult
 
 
 def write_maps(folder, result: MapResult, *, extra: dict | None = None, png: bool = True) -> list[Path]:
@@ -31,7 +30,7 @@ def write_maps(folder, result: MapResult, *, extra: dict | None = None, png: boo
     with atomic_writer(tif, binary=True) as handle:
         handle.write(payload)
     summary = _clean(result.summary() | (extra or {}))
-    sidecar = dict(format=FORMAT, image=tif.name, image_sha256=hashlib.sha256(payload).hexdigest(),
+    sidecar = dict(format=MAPS_FORMAT, image=tif.name, image_sha256=hashlib.sha256(payload).hexdigest(),
                    shape=list(stack.shape), dtype="float32",
                    layers=[dict(index=i, name=n, kind=k, units=u) for i, (n, k, u, _) in enumerate(layers)],
                    flag_bits=FLAG_BITS, summary=summary)
@@ -52,8 +51,8 @@ def read_maps(path) -> tuple[dict, np.ndarray]:
     path = Path(path)
     side = path.with_suffix(".json")
     doc = json.loads(side.read_text())
-    if doc.get("format") != FORMAT:
-        raise ValueError(f"{side}: format = {doc.get('format')!r}; expected {FORMAT!r}")
+    if doc.get("format") != MAPS_FORMAT:
+        raise ValueError(f"{side}: format = {doc.get('format')!r}; expected {MAPS_FORMAT!r}")
     payload = (side.parent / doc["image"]).read_bytes()
     if hashlib.sha256(payload).hexdigest() != doc["image_sha256"]:
         raise ValueError(f"{side}: image_sha256 does not match {doc['image']}")

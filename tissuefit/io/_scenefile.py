@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..scene import FlatBeam, LaunchList, LayeredTissue, PencilBeam, Scene, SpectralScene, SpectralTissue
-from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions
-from ..transport._spectral import resolve_config
+from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions, resolve_config
 from . import _spectralfile
 from ._mci import read_mci
 from ._run import DEFAULT_RENDER_PHOTONS, RenderSpec, Run, SpectralRun

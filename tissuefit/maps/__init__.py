@@ -6,13 +6,13 @@
 - `map(measured, model, free)`: per-pixel Levenberg-Marquardt (optimistix), vmapped and chunked,
   with a free per-pixel scale, the fit's bound transforms, the measurement's noise model, dead
   bands masked and an optional smoothness prior (`_solve.py`); `MapResult` (`_result.py`; its
-  files are written by `tissuefit.io.write_maps`, data_spec/maps.md).
+  files are written by `tissuefit.io.write_maps`, data_spec/maps.md, whose `format` is `MAPS_FORMAT`).
 """
 
 from ._build import COS_EDGES as COS_EDGES, reflectance_from_records as reflectance_from_records, trace_white as trace_white
 from ._cache import build_model as build_model, default_model_dir as default_model_dir, model_for_tissue as model_for_tissue
 from ._model import WhiteModel as WhiteModel, hermite_weights as hermite_weights, view_weights as view_weights
-from ._result import FLAG_BITS as FLAG_BITS, MapResult as MapResult
+from ._result import FLAG_BITS as FLAG_BITS, MAPS_FORMAT as MAPS_FORMAT, MapResult as MapResult
 from ._solve import FLAGS as FLAGS, map as map, map_reference as map_reference
 from ._spectra import PixelSpectra as PixelSpectra, free_parameters as free_parameters, reference_properties as reference_properties
 from ._synthetic import camera_noise as camera_noise, model_stack as model_stack

@@ -6,7 +6,8 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-FORMAT = "tissuefit-maps/1"
+MAPS_FORMAT = "tissuefit-maps/1"
+"""The `format` of a map file's sidecar and summary (data_spec/maps.md; written by `tissuefit.io.write_maps`)."""
 FLAG_BITS = {"1": "solver did not converge", "2": "a value at its bound", "4": "J^T J singular or a value not finite",
              "8": "fewer usable bands than unknowns"}
 
@@ -48,7 +49,7 @@ class MapResult(eqx.Module):
             params[name] = dict(units=self.units[k], median=q(v, 50), p05=q(v, 5), p95=q(v, 95),
                                 median_sigma=q(s, 50))
         counts = {bit: int(np.count_nonzero(self.flags & int(bit))) for bit in FLAG_BITS}
-        return dict(format=FORMAT, shape=list(self.flags.shape), pixels=int(self.flags.size),
+        return dict(format=MAPS_FORMAT, shape=list(self.flags.shape), pixels=int(self.flags.size),
                     good_pixels=int(good.sum()), flagged_pixels=int((~good).sum()), flag_counts=counts,
                     flag_bits=FLAG_BITS, parameters=params,
                     median_reduced_chi2=float(np.median(self.reduced_chi2[good])) if good.any() else None,

@@ -24,8 +24,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..fit._names import scene_parameters
-from ..fit._parameters import FitParameter, Layout
+from ..fit import FitParameter, Layout, scene_parameters
 from ..scene import Blood, ConstantAbsorption, ConstantScattering, Fluorophore, PowerLawScattering, TabulatedAbsorber
 
 GAUSS_POINTS = 4

@@ -342,8 +342,8 @@ def estimate_surface(
     - `chunk`: queries per work item (default 128; a speed setting: results do not depend on it
       beyond rounding).
     - `devices`: devices to deal the work items over (default: all local devices of the default
-      backend; importing tissuefit makes one XLA CPU device per core). Results do not depend on
-      it beyond rounding.
+      backend; `tissuefit.configure()` makes one XLA CPU device per core, importing tissuefit does
+      not). Results do not depend on it beyond rounding.
     - `throw`: if the map overflowed or `radius` exceeds the cell: raise (`RuntimeError`,
       `ValueError`) when called eagerly; under jit the estimate is NaN instead (check
       `map.overflow`). `throw=False` returns the estimate from the candidates within capacity.

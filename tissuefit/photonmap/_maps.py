@@ -81,7 +81,8 @@ def _dtype(precision) -> jnp.dtype:
     if precision not in ("float32", "float64"):
         raise ValueError(f"precision = {precision!r}; allowed 'float32' or 'float64'")
     if precision == "float64" and not jax.config.jax_enable_x64:
-        raise ValueError("precision = 'float64' needs jax_enable_x64 (importing tissuefit enables it)")
+        raise ValueError("precision = 'float64' needs jax_enable_x64: call tissuefit.configure() once at start-up "
+                         "(importing tissuefit changes no JAX setting)")
     return jnp.dtype(precision)
 
 

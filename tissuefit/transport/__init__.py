@@ -1,4 +1,8 @@
-"""How photons move: MCML physics, vectorised lane loop with regeneration, tallies."""
+"""How photons move: MCML physics, vectorised lane loop with regeneration, tallies.
+
+`resolve_config(scene, options, spectral, records)` is public so that a scene file's reader
+(`tissuefit.io`) can check the spectral mode against the scene's optics before anything runs.
+"""
 
 from ._camera import PinholeCamera as PinholeCamera
 from ._config import TALLY_NAMES as TALLY_NAMES, TallySpec as TallySpec, TraceOptions as TraceOptions
@@ -11,6 +15,7 @@ from ._result import TraceResult as TraceResult
 from ._spectral import (
     SpectralOptions as SpectralOptions,
     SpectralResult as SpectralResult,
+    resolve_config as resolve_config,
     trace_spectral as trace_spectral,
 )
 from ._trace import TraceState as TraceState, trace as trace

@@ -167,7 +167,13 @@ TINY = 1e-30
 
 def segment_log_ratio(path, hits, score, props, props0) -> Float[Array, "n bands"]:
     """log of a segment's weight ratio in every band: sum_m n_m log(mus/mus0) - L_m (mut - mut0)
-    + S_m (g - g0), with path, hits, score [n, media] and props (mua, mus, g) [media, bands]."""
+    + S_m (g - g0), with path [cm], hits, score [n, media] and props (mua [1/cm], mus [1/cm], g)
+    [media, bands] at the new and the traced parameters.
+
+    The likelihood ratio belongs to `tissuefit.replay`, which re-exports this function for recorded
+    segments. It is defined here because the next-event camera image (`_nee.py`) scores its
+    contributions on the fly and never records them, so there is nothing to replay afterwards: the
+    tracer scores their tangents itself (docs/design.md §5), and transport cannot import replay."""
     (mua, mus, g), (mua0, mus0, g0) = props, props0
     log_mus = jnp.where(mus0 > 0, jnp.log(jnp.maximum(mus, TINY) / jnp.where(mus0 > 0, mus0, 1.0)), 0.0)
     dmut = (mua + mus) - (mua0 + mus0)
