@@ -1,17 +1,27 @@
 """Every example in README.md runs as written (issue 25, item 1: the fit example used undefined names
 and failed, the replay example raised NameError).
 
-What is run, in the README's order, in one fresh Python process working in a scratch folder that
-holds links to the repository's files (so `data_spec/...` resolves and `out/...` is written there):
+What is run, each in a fresh Python process working in its own scratch folder that holds links to
+the repository's files (so `data_spec/...` resolves and `out/...` is written there), as a user on a
+fresh clone would run it:
 
-- every ```python block, all in one namespace (a block may use what an earlier one defined);
-- every line of a ```sh block that starts with `tissuefit ` (continuation lines joined, `#`
-  comments dropped), as a `tissuefit` command with the arguments and photon counts it states.
-  Other lines (`make demo`, `make test`) are not run. Usage synopses with placeholders belong in
-  ```text blocks.
+- every ```python block on its own, as a user who pastes just that block would (so each block
+  imports what it uses); except that a block whose first line is a comment starting `# continues`
+  (it says which earlier block it builds on) runs after the python block before it, in the same
+  namespace;
+- the ```sh blocks, in the README's order, in one folder (a command may read what an earlier one
+  wrote): every line that starts with `tissuefit ` (continuation lines joined, `#` comments
+  dropped), as a `tissuefit` command with the arguments and photon counts it states. Other lines
+  (`make demo`, `make test`) are not run. Usage synopses with placeholders belong in ```text
+  blocks.
 
-One test per block reports that block's outcome. A command too slow for the suite calls for a
-smaller example in the README, not for a skip here.
+These independent groups ("tracks") run side by side, a few processes at a time, so that the
+compilations of one overlap another's. One test runs them all and reports each block's outcome as a
+subtest: one test item stays on one pytest-xdist worker, where one test per block sharing a
+module-scoped run would have each worker that drew one of them run every block again
+(`xdist_group` with `--dist loadgroup` would pin them, but pytest 9.2 ignores it:
+pytest-dev/pytest-xdist#1386). A command too slow for the suite calls for a smaller example in the
+README, not for a skip here.
 """
 
 from __future__ import annotations
@@ -23,10 +33,9 @@ import shlex
 import subprocess
 import sys
 import textwrap
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -42,6 +51,11 @@ class Block:
     @property
     def name(self) -> str:
         return f"{self.kind}@README.md:{self.line}"
+
+    @property
+    def continues(self) -> bool:
+        """A python block that builds on the python block before it (its first line: `# continues ...`)."""
+        return self.kind == "python" and self.code.lstrip().lower().startswith("# continues")
 
 
 def _commands(lines: list[str]) -> list[list[str]]:
@@ -79,6 +93,20 @@ def readme_blocks(text: str) -> list[Block]:
     return blocks
 
 
+def tracks(blocks: list[Block]) -> list[list[Block]]:
+    """The blocks grouped into what must run in one process, in order: every python block starts a
+    track of its own unless it continues the one before; all sh blocks form one track."""
+    python, sh = [], []
+    for block in blocks:
+        if block.kind == "sh":
+            sh.append(block)
+        elif block.continues and python:
+            python[-1].append(block)
+        else:
+            python.append([block])
+    return python + ([sh] if sh else [])
+
+
 BLOCKS = readme_blocks(README.read_text(encoding="utf-8"))
 
 DRIVER = textwrap.dedent("""
@@ -108,9 +136,8 @@ DRIVER = textwrap.dedent("""
 """)
 
 
-def _scratch(tmp: Path) -> Path:
+def _scratch(work: Path) -> Path:
     """A folder holding links to the repository's top-level files and folders (not `out`, `.git`, `.venv`)."""
-    work = tmp / "readme"
     work.mkdir()
     for entry in ROOT.iterdir():
         if entry.name not in ("out", ".git", ".venv") and not entry.name.startswith(".pytest"):
@@ -118,24 +145,32 @@ def _scratch(tmp: Path) -> Path:
     return work
 
 
-@pytest.fixture(scope="module")
-def outcomes(tmp_path_factory) -> dict[str, dict]:
-    tmp = tmp_path_factory.mktemp("readme")
-    work = _scratch(tmp)
-    spec = tmp / "blocks.json"
-    spec.write_text(json.dumps([{"name": b.name, "kind": b.kind, "code": b.code} for b in BLOCKS]))
-    driver = tmp / "driver.py"
-    driver.write_text(DRIVER)
-    done = subprocess.run([sys.executable, str(driver), str(spec)], cwd=work, capture_output=True, text=True,
-                          timeout=3600, env=dict(os.environ))
+def _run_track(tmp: Path, number: int, track: list[Block]) -> dict[str, dict]:
+    """Run one track's blocks in order in a fresh process and scratch folder; an outcome per block."""
+    work = _scratch(tmp / f"track{number}")
+    spec = tmp / f"track{number}.json"
+    spec.write_text(json.dumps([{"name": b.name, "kind": b.kind, "code": b.code} for b in track]))
+    done = subprocess.run([sys.executable, str(tmp / "driver.py"), str(spec)], cwd=work, capture_output=True,
+                          text=True, timeout=3600, env=dict(os.environ))
     results = {}
     for line in done.stdout.splitlines():
         if line.startswith("README-BLOCK "):
             outcome = json.loads(line[len("README-BLOCK "):])
             results[outcome["name"]] = outcome
-    if done.returncode != 0 and len(results) < len(BLOCKS):
-        results["__driver__"] = {"ok": False, "error": done.stderr[-4000:]}
+    for block in track:  # a driver that died (a crash in XLA, say) fails the blocks it did not report
+        results.setdefault(block.name, {"ok": False, "error": f"the driver exited with status {done.returncode} "
+                                                              f"before this block reported:\n{done.stderr[-4000:]}"})
     return results
+
+
+def run_readme(tmp: Path) -> dict[str, dict]:
+    """Every block's outcome, by name: {"ok", "error", "seconds"}."""
+    (tmp / "driver.py").write_text(DRIVER)
+    # tracks with more blocks first (they take longest); at least two at a time, one per core beyond that
+    order = sorted(enumerate(tracks(BLOCKS)), key=lambda item: -len(item[1]))
+    with ThreadPoolExecutor(max_workers=min(len(order), max(2, os.cpu_count() or 1))) as pool:
+        done = list(pool.map(lambda item: _run_track(tmp, *item), order))
+    return {name: outcome for results in done for name, outcome in results.items()}
 
 
 def test_the_readme_has_examples_to_run():
@@ -143,10 +178,13 @@ def test_the_readme_has_examples_to_run():
     assert kinds == {"python", "sh"}, f"README.md: runnable blocks found: {[b.name for b in BLOCKS]}"
 
 
-@pytest.mark.parametrize("block", BLOCKS, ids=lambda b: b.name)
-def test_readme_block_runs(outcomes, block):
-    outcome = outcomes.get(block.name) or outcomes.get("__driver__") or {"ok": False, "error": "not run"}
-    assert outcome["ok"], f"{block.name} failed:\n{outcome['error']}"
+def test_readme_blocks_run(subtests, tmp_path):
+    outcomes = run_readme(tmp_path)
+    print("seconds per block:", ", ".join(f"{b.name} {outcomes.get(b.name, {}).get('seconds', '-')}" for b in BLOCKS))
+    for block in BLOCKS:
+        with subtests.test(msg=block.name):
+            outcome = outcomes.get(block.name) or {"ok": False, "error": "not run"}
+            assert outcome["ok"], f"{block.name} failed after {outcome.get('seconds', '?')} s:\n{outcome['error']}"
 
 
 def test_the_block_reader():
@@ -162,11 +200,23 @@ def test_the_block_reader():
         ```python
         x = 1
         ```
+        ```python
+        # continues the block above
+        y = x
+        ```
+        ```sh
+        tissuefit check a.toml
+        ```
+        ```python
+        z = 2
+        ```
         """)
     blocks = readme_blocks(text)
-    assert [(b.kind, b.line) for b in blocks] == [("sh", 1), ("python", 9)]
+    assert [(b.kind, b.line) for b in blocks] == [("sh", 1), ("python", 9), ("python", 12), ("sh", 16), ("python", 19)]
     assert json.loads(blocks[0].code) == [["tissuefit", "simulate", "a.toml", "--photons", "10"]]
     assert blocks[1].code == "x = 1\n"
+    assert [b.continues for b in blocks] == [False, False, True, False, False]
+    assert [[b.line for b in track] for track in tracks(blocks)] == [[9, 12], [19], [1, 16]]
 
 
 def _synopsis_options(text: str) -> dict[str, set[str]]:
