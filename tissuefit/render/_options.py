@@ -28,6 +28,11 @@ class RenderOptions(eqx.Module):
       per band group at equal launches, for about 1.4x the time), `smoothing`: "sure"
       (default: a Gaussian per band whose width minimises Stein's unbiased estimate of the squared
       error, `_denoise.py`) or "none"; `smoothing_px` fixes the width instead [pixels].
+      `nee_fluorescence`: "adjoint" traces fluorescence from the camera: the launches
+      tally the excitation fluence into a grid, then `paths` paths per pixel start from the camera
+      and score the fluorescence source it holds (`tissuefit.transport._adjoint`; no phase
+      function towards a pinhole, so no heavy tail; bounded by the grid's interpolation);
+      "sites" (default) traces it from emission sites on the lights' side (`splits`, `site_rate`).
     - "photon-map": the paper's method (Zacher 2009): a surface photon map for the light leaving
       the tissue, spread by an angular model, and an S-step ray march through volume maps for
       fluorescence. Options:
@@ -56,6 +61,8 @@ class RenderOptions(eqx.Module):
     lobe: bool = eqx.field(static=True, default=True)
     smoothing: Literal["sure", "none"] = eqx.field(static=True, default="sure")
     smoothing_px: float | None = eqx.field(static=True, default=None)
+    nee_fluorescence: Literal["adjoint", "sites"] = eqx.field(static=True, default="sites")
+    paths: int = eqx.field(static=True, default=32)
     steps: int = eqx.field(static=True, default=5)
     step_length: float | None = eqx.field(static=True, default=None)
     kernel: str = eqx.field(static=True, default="epanechnikov")
@@ -82,6 +89,9 @@ class RenderOptions(eqx.Module):
         check_range("render.site_rate", self.site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
         if self.smoothing not in ("sure", "none"):
             raise ValueError(f"render.smoothing = {self.smoothing!r}; allowed 'sure' or 'none'")
+        if self.nee_fluorescence not in ("adjoint", "sites"):
+            raise ValueError(f"render.nee_fluorescence = {self.nee_fluorescence!r}; allowed 'adjoint' or 'sites'")
+        check_positive_int("render.paths", self.paths, high=1 << 20)
         if self.smoothing_px is not None:
             check_range("render.smoothing_px", self.smoothing_px, unit="pixels", low=0.0, high=64.0)
         check_positive_int("render.steps", self.steps, high=1000)

@@ -228,7 +228,9 @@ def render(
     if setup.options.estimator == "nee":
         image = trace_image(scene, setup.endoscope.camera(setup.options.batches), key=key, photons=kept,
                             options=setup.trace_options, spectral=setup.spectral, splits=setup.options.splits,
-                            site_rate=setup.options.site_rate, lobe=setup.options.lobe, progress=progress, tangents=tangents)
+                            site_rate=setup.options.site_rate, lobe=setup.options.lobe, progress=progress, tangents=tangents,
+                            fluorescence=setup.options.nee_fluorescence,
+                            paths=setup.options.paths)
         timings["trace"] = time.perf_counter() - t
         return _finish_nee(setup, view, image, kept, fraction, timings, keep_batches)
     traced = _trace_records(setup, scene, key, kept, chunks, progress, path_statistics)
@@ -243,6 +245,7 @@ def render(
 def _finish_nee(setup: _Setup, view: View, image, kept: int, fraction: float, timings: dict, keep_batches: bool) -> RenderResult:
     """Stage 4 for the next-event image: smoothing, specular term, filter."""
     t = time.perf_counter()
+    timings.update({f"trace_{stage}": seconds for stage, seconds in image.timings.items()})
     e = setup.endoscope
     hit = np.asarray(view.hit).reshape(e.height, e.width)
     raw = image.image * fraction

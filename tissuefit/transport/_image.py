@@ -10,12 +10,18 @@ before it escapes, and sampling sites of their own where fluorescence light is c
 The image is the sum of all of it per launched photon; the photons (and all light descending
 from each) are split into `camera.batches` independent batch images, whose spread is its Monte
 Carlo noise.
+
+With `fluorescence="adjoint"` fluorescence is traced from the camera instead (`_adjoint.py`): the
+launches tally the excitation fluence into a grid and score only the scattered light; then
+`paths` paths per pixel start from the camera and score the fluorescence source the grid holds.
+Batch b of those paths uses batch b's grid, so the batches stay independent.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -24,6 +30,7 @@ import numpy as np
 from .._checks import bucket, check_positive_int, check_range
 from .._setup import float64
 from ..scene import SpectralScene
+from ._adjoint import POWER_FLOOR, CameraPaths, FluenceGrid, camera_footprint, smooth_fluence, smooth_like
 from ._camera import PinholeCamera
 from ._config import TraceOptions
 from ._nee import EmissionSites, ImageSpec
@@ -48,7 +55,10 @@ class ImageResult(eqx.Module):
       `emitted` [generations]: their power per launched photon (summed over bands);
       `untraced`: the power of sites of the generation after the last, left out (per launched photon).
     - `trace`: the `SpectralResult` of the launches (tallies of the first chunk, records dropped).
-    - `timings`: seconds per stage ("launches", "sites").
+    - `timings`: seconds per stage ("launches", "sites", "paths").
+    - fluorescence from the camera: `fluorescence_batches` [batches, bands, H, W] its part of
+      `batches`, `grid` the `FluenceGrid`, `grid_smoothing` [excitation bands] the lateral width
+      [cells] its fluence was smoothed with (`smooth_fluence`), `paths` the paths traced per pixel.
     """
 
     batches: np.ndarray
@@ -59,6 +69,10 @@ class ImageResult(eqx.Module):
     trace: SpectralResult
     timings: dict
     tangent_batches: np.ndarray | None = None
+    fluorescence_batches: np.ndarray | None = None
+    grid: FluenceGrid | None = None
+    paths: int = 0
+    grid_smoothing: np.ndarray | None = None
 
     @property
     def image(self) -> np.ndarray:
@@ -113,6 +127,10 @@ def trace_image(
     chunk_photons: int = CHUNK_PHOTONS,
     progress=None,
     tangents: tuple = (),
+    fluorescence: Literal["sites", "adjoint"] = "sites",
+    paths: int = 32,
+    grid: FluenceGrid | None = None,
+    path_options: TraceOptions | None = None,
 ) -> ImageResult:
     """Trace `photons` launches of `scene` and score what `camera` sees (module docstring).
 
@@ -132,6 +150,9 @@ def trace_image(
     - `progress`: optional callable `progress(launches_done)`.
     - `tangents`: tissues shaped like `scene.tissue` whose leaves are directions in its coefficients:
       the image's derivative along each is scored too (`ImageResult.tangent_batches`).
+    - `fluorescence`: "sites" (emission sites from the lights' side) or "adjoint" (from the camera,
+      `_adjoint.py`): `paths` per pixel, through `grid` (default
+      `FluenceGrid.covering` the camera's footprint), traced with `path_options` (default `options`).
     Returns an `ImageResult`.
     """
     if not isinstance(scene, SpectralScene):
@@ -143,6 +164,12 @@ def trace_image(
     generations = check_positive_int("generations", generations, high=16)
     chunk_photons = check_positive_int("chunk_photons", chunk_photons, high=2**31)
     check_range("site_rate", site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
+    if fluorescence not in ("sites", "adjoint"):
+        raise ValueError(f"fluorescence = {fluorescence!r}; allowed 'sites' or 'adjoint'")
+    if fluorescence == "adjoint" and scene.tissue.fluorescent:
+        return _trace_adjoint(scene, camera, key=key, photons=photons, options=options, spectral=spectral, lobe=lobe,
+                              chunk_photons=chunk_photons, progress=progress, tangents=tuple(tangents), paths=paths,
+                              grid=grid, path_options=path_options or options)
     timings = {"launches": 0.0, "sites": 0.0}
     sums = dsums = None  # batch sums (per batch: sum over its photons of their radiance) and their tangents
     tangents = tuple(tangents)
@@ -187,3 +214,65 @@ def trace_image(
                        tangent_batches=None if dsums is None else dsums * camera.batches / photons,
                        emitted=tuple(float(e) / photons for e in emitted), untraced=untraced / photons,
                        trace=dataclasses.replace(first, sites=None, image=None), timings=timings)
+
+
+def fluorescence_bands(scene: SpectralScene) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(excitation bands, emission bands) of a fluorescent scene: the lit bands some medium converts
+    from (above `POWER_FLOOR` of the strongest), and the bands it converts them into (concrete values)."""
+    power = np.asarray(scene.band_power())
+    conv = np.asarray(scene.tissue.conversion())  # [media, bands, bands]
+    strength = power * conv.max((0, 2))
+    excite = (power > 0) & (strength > 0) & (strength >= POWER_FLOOR * strength.max())
+    emit = conv[:, excite].sum((0, 1)) > 0
+    return tuple(int(b) for b in np.nonzero(excite)[0]), tuple(int(b) for b in np.nonzero(emit)[0])
+
+
+def _trace_adjoint(scene, camera, *, key, photons, options, spectral, lobe, chunk_photons, progress, tangents, paths, grid,
+                   path_options) -> ImageResult:
+    """`trace_image` with fluorescence from the camera (module docstring)."""
+    paths = check_positive_int("paths", paths, high=1 << 20)
+    excite, emit = fluorescence_bands(scene)
+    if grid is None:
+        grid = FluenceGrid.covering(camera_footprint(camera), scene.tissue, excite or (0,), batches=camera.batches,
+                                    emission_bands=emit)
+    elif not isinstance(grid, FluenceGrid):
+        raise TypeError(f"grid must be a FluenceGrid, got {type(grid).__name__}")
+    elif grid.batches != camera.batches:
+        raise ValueError(f"grid.batches = {grid.batches}; allowed the camera's batches ({camera.batches})")
+    timings = {"launches": 0.0, "sites": 0.0, "paths": 0.0}
+    sums = dsums = fluence = dfluence = None
+    first = None
+    spec = ImageSpec(camera=camera, lobe=lobe, grid=grid if excite else None)
+    for c, start in enumerate(range(0, photons, chunk_photons)):
+        n = min(chunk_photons, photons - start)
+        t0 = time.perf_counter()
+        done = (lambda k, s=start: progress(s + k)) if progress is not None else None
+        out = trace_spectral(scene, key=jax.random.fold_in(key, c), photons=n, options=options, spectral=spectral,
+                             image=spec, progress=done, tangents=tangents)
+        timings["launches"] += time.perf_counter() - t0
+        first = first or out
+        sums = _add(sums, out.image, n / photons)
+        dsums = _add(dsums, out.image_tangents, n / photons)
+        fluence = _add(fluence, out.fluence, n / photons)
+        dfluence = _add(dfluence, out.fluence_tangents, n / photons)
+    fluor = np.zeros_like(sums)
+    dfluor = None if dsums is None else np.zeros_like(dsums)
+    widths = None
+    if excite and emit:
+        t0 = time.perf_counter()
+        fluence, widths = smooth_fluence(fluence, grid)
+        if dfluence is not None:
+            dfluence = smooth_like(dfluence, grid, widths)
+        source = CameraPaths(fluence=fluence, camera=camera, grid=grid, bands=emit, tangents=dfluence)
+        traced = trace_spectral(SpectralScene(scene.tissue, source=source, spectrum=scene.spectrum),
+                                key=jax.random.fold_in(key, 1 << 20), photons=paths * camera.pixels, options=path_options,
+                                spectral=spectral, image=ImageSpec(camera=camera, lobe=False), tangents=tangents)
+        # trace_spectral normalises per path; a pixel's value is the mean of its own paths
+        fluor = traced.image * camera.pixels
+        if dfluor is not None:
+            dfluor = traced.image_tangents * camera.pixels
+        timings["paths"] = time.perf_counter() - t0
+    return ImageResult(batches=sums + fluor, photons=photons, sites=(), emitted=(), untraced=0.0,
+                       trace=dataclasses.replace(first, image=None, image_tangents=None, fluence=None, fluence_tangents=None),
+                       timings=timings, tangent_batches=None if dsums is None else dsums + dfluor,
+                       fluorescence_batches=fluor, grid=grid, paths=paths, grid_smoothing=widths)

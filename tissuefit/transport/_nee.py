@@ -62,7 +62,8 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import check_positive_int, check_range
 from ..scene import AbstractSource
-from . import _physics as phys, _rng
+from . import _adjoint, _physics as phys, _rng
+from ._adjoint import FluenceGrid
 from ._camera import Connection, PinholeCamera, connect, hg_intensity
 from ._lanes import ALIVE, IDLE, KILLED, _expand
 from ._records import segment_log_ratio
@@ -82,6 +83,10 @@ class ImageSpec(eqx.Module):
     - `from_sites`: the photons start at `EmissionSites` (set by `trace_spectral`).
     - `lobe`: score the camera lobe (module docstring) as well: lower variance where the phase
       function is forward-peaked, one more connection per interaction.
+    - `grid`: a `FluenceGrid` (`_adjoint.py`): fluorescence is estimated from the camera instead of
+      by emission sites. The lights' trace then tallies the excitation fluence into the grid and
+      scores only the scattered light; a trace of `CameraPaths` (`from_camera`, set by
+      `trace_spectral`) scores the fluorescence source the grid holds.
     """
 
     camera: PinholeCamera = eqx.field(static=True)
@@ -90,8 +95,14 @@ class ImageSpec(eqx.Module):
     tangents: int = eqx.field(static=True, default=0)
     from_sites: bool = eqx.field(static=True, default=False)
     lobe: bool = eqx.field(static=True, default=True)
+    grid: FluenceGrid | None = eqx.field(static=True, default=None)
+    from_camera: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
+        if self.grid is not None and not isinstance(self.grid, FluenceGrid):
+            raise TypeError(f"image.grid is a {type(self.grid).__name__}, not a FluenceGrid")
+        if self.from_camera and self.grid is None:
+            raise ValueError("image: paths from the camera need the fluence grid they score (image.grid)")
         if not isinstance(self.camera, PinholeCamera):
             raise TypeError(f"image.camera is a {type(self.camera).__name__}, not a PinholeCamera")
         if not isinstance(self.sites, (int, np.integer)) or isinstance(self.sites, bool) or self.sites < 0:
@@ -272,7 +283,9 @@ def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y,
     cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
     vertex = _Vertex(w0=w0, path=path_in if config.tangents else None, hits=lanes.hits, score=lanes.score, med=med,
                      cos=cos, lengths=conn.lengths, factor=conn.factor, mis=lanes.mis)
-    acc, emitted, demitted = _deposit(acc, lanes, medium, config, vertex, conn, interact, config.fluorescent)
+    acc, emitted, demitted = _deposit(acc, lanes, medium, config, vertex, conn, interact, config.sites)
+    if config.fluence:
+        acc = _adjoint.tally(acc, lanes, medium, config, w0, interact, x, y, z_abs, med, path_in)
     if config.sites:
         acc = acc._replace(**_record_sites(acc, lanes, medium, config, w0, emitted, demitted, interact, x, y, z_abs, med, xi))
     return acc, conn.direction

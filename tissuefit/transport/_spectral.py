@@ -21,6 +21,7 @@ from .._checks import check_positive_int, check_range, checked_parameters, is_co
 from .._outcome import Outcome
 from .._setup import float64
 from ..scene import BandGrid, SpectralScene
+from ._adjoint import POWER_FLOOR, CameraPaths, fluence_of
 from ._config import TraceOptions
 from ._nee import EmissionSites, ImageSpec, refill_sites
 from ._records import REPLAY_FIELDS, PhotonRecords, RecordSpec
@@ -87,6 +88,9 @@ class SpectralResult(eqx.Module):
     (`EmissionSites`, powers per launched photon of this trace times its photon count: raw weights),
     `sites_overflow` the sites that did not fit (their light is missing: retrace with more room).
     With `tangents`: `image_tangents` [batches, K, bands, H, W], the image's derivative along each.
+    With `image.grid` (the lights' pass of fluorescence from the camera, `_adjoint.py`): `fluence`
+    [batches, excitation bands, voxels], the excitation fluence per unit launched power [1/cm^2],
+    and with tangents `fluence_tangents` [K, batches, excitation bands, voxels] its derivatives.
     `mode`: the mode used; `active`: the bands traced; `photons`, `steps`, `outcome` (`tissuefit.Outcome`).
     """
 
@@ -125,6 +129,8 @@ class SpectralResult(eqx.Module):
     image_tangents: np.ndarray | None = None
     sites: EmissionSites | None = None
     sites_overflow: int = 0
+    fluence: np.ndarray | None = None
+    fluence_tangents: np.ndarray | None = None
 
     @property
     def wavelengths(self) -> np.ndarray:
@@ -158,6 +164,19 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
                    image: ImageSpec | None = None) -> SpectralConfig:
     """The static configuration of a spectral trace, decided in Python from the scene."""
     active = scene.active_bands()
+    fluorescent = scene.tissue.fluorescent
+    if image is not None and image.grid is not None:
+        # fluorescence from the camera (`_adjoint.py`): neither pass samples conversions. The
+        # lights' pass carries the lit bands; the camera's paths the bands they score.
+        fluorescent = False
+        if image.from_camera:
+            active = tuple(scene.source.bands)
+        else:
+            power = np.asarray(scene.band_power())
+            active = tuple(int(b) for b in np.nonzero((power > 0) & (power >= POWER_FLOOR * power.max()))[0])
+            missing = sorted(set(image.grid.bands) - set(active))
+            if missing:
+                raise ValueError(f"image.grid.bands: bands {missing} carry no source power (lit: {list(active)})")
     props = _active_properties(scene, active)
     mode = spectral.mode
     voxels = any(r.num_media > 1 for r in scene.tissue.regions)
@@ -186,7 +205,7 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
             raise ValueError(f"image: the emission sites carry {scene.source.power.shape[1]} bands, the scene's "
                              f"active bands are {len(active)}")
     return SpectralConfig(
-        mode=mode, num_bands=scene.tissue.bands.num_bands, active=active, fluorescent=scene.tissue.fluorescent,
+        mode=mode, num_bands=scene.tissue.bands.num_bands, active=active, fluorescent=fluorescent,
         num_layers=scene.tissue.num_layers, num_media=scene.tissue.num_media, boost=float(spectral.conversion_boost),
         records=records, options=options, image=image,
     )
@@ -280,8 +299,17 @@ def trace_spectral(
     tangents = tuple(tangents)
     if tangents and image is None:
         raise ValueError("tangents: the derivative directions belong to an image (give image=ImageSpec(...))")
+    if isinstance(scene.source, CameraPaths) and image is None:
+        raise ValueError("scene.source: paths from the camera are traced with an image (ImageSpec) only")
     if image is not None:
         image = dataclasses.replace(image, tangents=len(tangents), from_sites=isinstance(scene.source, EmissionSites))
+        if isinstance(scene.source, CameraPaths):
+            # paths from the camera score the source of their own grid; no lobe (no connection)
+            image = dataclasses.replace(image, grid=scene.source.grid, from_camera=True, lobe=False)
+            if scene.source.camera != image.camera:
+                raise ValueError("scene.source: the camera paths belong to another camera than image.camera")
+        if image.from_camera and tangents and scene.source.tangents is None:
+            raise ValueError("tangents: the camera paths' fluence carries no tangents; trace the lights with the same tangents")
         if image.from_sites and tangents and scene.source.tangent is None:
             raise ValueError("tangents: the emission sites carry no tangents; trace them with the same tangents")
     config = resolve_config(scene, options, spectral, records, image)
@@ -382,6 +410,9 @@ def _image_parts(acc, config: SpectralConfig, photons: int, scene: SpectralScene
     full = np.zeros((cam.batches, 1 + k, config.num_bands, cam.height, cam.width))
     full[:, :, np.asarray(config.active)] = sums
     out = {"image": full[:, 0], "image_tangents": full[:, 1:] if k else None}
+    if acc.fluence is not None:
+        fluence = fluence_of(acc.fluence, config.image.grid, photons)
+        out["fluence"], out["fluence_tangents"] = fluence[0], fluence[1:] if k else None
     if acc.sites is not None:
         sites = acc.sites
         rows = [np.arange(int(c)) for c in sites.count]

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _nee, _physics as phys, _rng
+from . import _adjoint, _nee, _physics as phys, _rng
 from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
 from ._spectral_state import SpectralConfig, _Acc, _Buffer, _Lanes, _Medium, boosted
 from ._spectral_weights import _convert_batch, _convert_batch_per_band, _flush_per_band, _sample_index, band_weights
@@ -111,6 +111,9 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
     x, y, ux, uy, uz, w0, layer, status, rsp = launch_photons(
         scene.source, pid, u, medium.n_ext, medium.thickness[0], glass0, config.num_layers, dtype
     )
+    if config.adjoint:  # paths from the camera: the solid angle of the pixel each one samples
+        w0 = w0 * scene.source.weight(pid, u).astype(dtype)
+        status = jnp.where(w0 > 0, status, KILLED)
     act = jnp.asarray(config.active, jnp.int32)
     power = medium.power[act]
     if len(config.active) > 1:
@@ -254,7 +257,10 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     path_in = path  # the path statistics arriving at this interaction (a conversion resets them)
     new_band = lanes.band
     w_new = jnp.where(interact, keep, w)
-    if config.image is not None:
+    if config.adjoint:
+        acc = _adjoint.score(acc, lanes._replace(uz=uz), medium, config, interact=interact, x=x, y=y,
+                             z_abs=_pick(medium.z0, layer) + z, med=med, path_in=path_in)
+    elif config.image is not None:
         here_z = _pick(medium.z0, layer) + z
         acc, to_camera = _nee.score(acc, lanes._replace(uz=uz), medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z,
                          med=med, path_in=path_in, xi=xi_d if config.fluorescent else xi_c)

@@ -54,6 +54,17 @@ class SpectralConfig(eqx.Module):
         return self.image is not None and self.fluorescent
 
     @property
+    def fluence(self) -> bool:
+        """The lights' pass of fluorescence from the camera (`_adjoint.py`): interactions tally the
+        excitation fluence into `image.grid`; the trace samples no conversion and scores no fluorescence."""
+        return self.image is not None and self.image.grid is not None and not self.image.from_camera
+
+    @property
+    def adjoint(self) -> bool:
+        """Paths from the camera (`_adjoint.py`): interactions score the grid's fluorescence source."""
+        return self.image is not None and self.image.from_camera
+
+    @property
     def slots(self) -> int:
         return len(self.active)
 
@@ -144,6 +155,7 @@ class _Acc(NamedTuple):
     volume: _Buffer | None
     image: Array | None = None  # [batches * pixels + 1, slots] float64: next-event radiance sums (last row: dropped)
     sites: "_Sites | None" = None
+    fluence: Array | None = None  # [batches * excitation bands * voxels + 1] float64: sums of w / mut (`_adjoint.tally`)
 
 
 class _Sites(NamedTuple):
@@ -175,6 +187,7 @@ class _Medium(NamedTuple):
     dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
     solid_angle: Array | None = None  # image: [pixels] the camera pixels' solid angles [sr]
     dprops: tuple | None = None  # image tangents: (dmua, dmus, dg) [K, media * bands], dconv [K, media * bands, bands]
+    fluence: Array | None = None  # paths from the camera: [voxels, (1 + K) * batches * excitation bands] (`CameraPaths`)
 
 
 def boosted(q_a, boost: float):
@@ -192,7 +205,7 @@ def _tangent_arrays(tissue, tangents, config: SpectralConfig, dtype):
 
     def props(t):
         mua, mus, g = t.properties()
-        conv = t.conversion() if config.fluorescent else jnp.zeros(mua.shape + mua.shape[-1:])
+        conv = t.conversion() if config.fluorescent or config.adjoint else jnp.zeros(mua.shape + mua.shape[-1:])
         return mua, mus, g, conv
 
     outs = [jax.jvp(props, (tissue,), (tan,))[1] for tan in tangents]
@@ -208,9 +221,10 @@ def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
     mua, mus, g = t.properties()
     nm, nb = mua.shape
     conv = psum = q = log_ratio = log_mut_ratio = dmut = None
-    if config.fluorescent:
+    if config.fluorescent or config.adjoint:
         full = t.conversion()  # [media, bands, bands]
         conv = full.reshape(nm * nb, nb).astype(dtype)
+    if config.fluorescent:
         psum = full.sum(-1)
     if config.shared:
         act = jnp.asarray(config.active)
@@ -235,15 +249,28 @@ def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
             reach = (full.sum((0, 1)) > 0)[act]
             q = jnp.stack([boosted(q_a.max(1), config.boost),
                            boosted(jnp.where(reach[None, :], q_a, 0.0).max(1), config.boost)], axis=1).astype(dtype)
+    power = scene.band_power()
+    fluence = None
+    if config.adjoint:
+        # the paths carry importance 1 in every band they score (`_adjoint.score` undoes the 1/slots)
+        power = jnp.zeros(nb).at[jnp.asarray(config.active)].set(1.0 / config.slots)
+        # [voxels, (1 + K) * batches * excitation bands]: the values a lane reads side by side
+        src = scene.source
+        parts = [jnp.asarray(src.fluence, dtype)[None]]
+        if config.tangents:
+            parts.append(jnp.asarray(src.tangents, dtype))
+        stacked = jnp.concatenate(parts)
+        fluence = stacked.reshape(-1, stacked.shape[-1]).T
     return _Medium(
         n_ext=jnp.concatenate([geo.n_above[None], geo.n, geo.n_below[None]]).astype(dtype),
         thickness=geo.thickness.astype(dtype), z0=geo.z0.astype(dtype),
         mua=mua.reshape(-1).astype(dtype), mus=mus.reshape(-1).astype(dtype), g=g.reshape(-1).astype(dtype),
-        power=scene.band_power().astype(dtype), conv=conv,
+        power=power.astype(dtype), conv=conv,
         psum=None if psum is None else psum.reshape(-1).astype(dtype), q=q, log_ratio=log_ratio,
         log_mut_ratio=log_mut_ratio, dmut=dmut,
         solid_angle=None if config.image is None else jnp.asarray(config.image.camera.solid_angles(), dtype),
         dprops=_tangent_arrays(t, tangents, config, dtype) if config.tangents and tangents else None,
+        fluence=fluence,
     )
 
 
@@ -291,10 +318,15 @@ def zeros_acc(config: SpectralConfig, capacity_share: int, dtype) -> _Acc:
                            origin=jnp.zeros(cap, jnp.int64), count=jnp.zeros((), jnp.int64),
                            overflow=jnp.zeros((), jnp.int64),
                            tangent=jnp.zeros((cap, config.slots, config.tangents), dtype) if config.tangents else None)
+    fluence = None
+    if config.fluence:
+        grid = config.image.grid
+        fluence = jnp.zeros((1 + config.tangents) * grid.batches * len(grid.bands) * grid.voxels + 1, f64)
     return _Acc(
         next_pid=jnp.zeros((), jnp.int64), rsp=jnp.zeros((), f64), totals=jnp.zeros((2, 2), f64),
         escape=jnp.zeros((nb, 4, 2), f64), deposit=jnp.zeros((nb, 4), f64), flux=jnp.zeros((nb, 4), f64),
         steps=jnp.zeros((), jnp.int64), surface=buf(rec.surface), volume=buf(rec.volume), image=image, sites=sites,
+        fluence=fluence,
     )
 
 
