@@ -55,7 +55,7 @@ def render_stack(run: SpectralRun, spec: RenderSpec, result, *, seed: int, secon
                   "budget_exhausted": trace.outcome is Outcome.BUDGET_EXHAUSTED},
         "timings_s": {**{k: float(v) for k, v in result.timings.items()}, "total": float(seconds)},
     }
-    if result.estimator == "nee":
+    if result.estimator != "photon-map":
         # what the automatic choices came to: the smoothing per band, the image's own noise
         hit = np.asarray(result.hit)
         noise = [float(np.sqrt(v[hit].sum() / max((r[hit] ** 2).sum(), 1e-300))) for v, r in zip(result.variance, result.raw)]

@@ -55,13 +55,14 @@ ENDOSCOPE_KEYS = {"beta_deg": "beta_deg", "distance_cm": "distance", "separation
                   "width": "width", "height": "height", "target_cm": "target"}
 """`[endoscope]` key -> `Endoscope` field."""
 RENDER_OPTION_KEYS = {"estimator": "estimator", "batches": "batches", "splits": "splits", "site_rate": "site_rate", "lobe": "lobe",
+                      "nee_fluorescence": "nee_fluorescence", "paths": "paths",
                       "smoothing": "smoothing", "smoothing_px": "smoothing_px",
                       "steps": "steps", "step_length_cm": "step_length", "kernel": "kernel",
                       "surface_radius_cm": "surface_radius", "volume_radius_cm": "volume_radius", "k": "k",
                       "neighbours": "neighbours", "fluorescence": "fluorescence", "angular": "angular",
                       "specular_deg": "specular_deg", "halton": "halton"}
 """`[render]` key -> `RenderOptions` field (besides `photons` and `seed`)."""
-_INTEGER_FIELDS = ("width", "height", "steps", "k", "neighbours", "batches", "splits")
+_INTEGER_FIELDS = ("width", "height", "steps", "k", "neighbours", "batches", "splits", "paths")
 
 
 def is_spectral(doc: dict) -> bool:

@@ -116,6 +116,16 @@ class Endoscope(eqx.Module):
     # ---------------------------------------------------------------------------------------------
     # lights
 
+    def area_lights(self, scale: float = 1.0):
+        """The lights as `tissuefit.transport.AreaLights` (paths from the camera connect to them),
+        their radiance times `scale` (1: per unit head power)."""
+        from ..transport import AreaLights
+
+        a, ex, _, lights = self.frame()
+        return AreaLights(centres=tuple(tuple(float(v) for v in c) for c in lights), axis=tuple(float(v) for v in a),
+                          x_axis=tuple(float(v) for v in ex), y_axis=(0.0, 1.0, 0.0), radius=float(self.light_radius),
+                          cone_deg=float(self.cone_deg), radiance=self.light_radiance() * float(scale))
+
     def light_power(self) -> float:
         """Power of each light (the head emits 1 in total)."""
         return 0.5

@@ -9,14 +9,14 @@ import equinox as eqx
 from .._checks import check_positive_int, check_range
 from ..photonmap import KERNELS
 
-Estimator = Literal["nee", "photon-map"]
-ESTIMATORS: tuple[str, ...] = ("nee", "photon-map")
+Estimator = Literal["nee", "adjoint", "photon-map"]
+ESTIMATORS: tuple[str, ...] = ("nee", "adjoint", "photon-map")
 
 
 class RenderOptions(eqx.Module):
     """How a render estimates radiance (static: changing it recompiles).
 
-    `estimator`: "nee" (default) or "photon-map".
+    `estimator`: "nee" (default), "adjoint" or "photon-map".
     - "nee": next-event estimation to the camera (`tissuefit.transport.trace_image`): every
       interaction scores the light it sends straight to the camera, unbiased and without kernels;
       fluorescence from emission sites traced as photons of their own. It measured the lowest error
@@ -28,11 +28,19 @@ class RenderOptions(eqx.Module):
       per band group at equal launches, for about 1.4x the time), `smoothing`: "sure"
       (default: a Gaussian per band whose width minimises Stein's unbiased estimate of the squared
       error, `_denoise.py`) or "none"; `smoothing_px` fixes the width instead [pixels].
-      `nee_fluorescence`: "adjoint" traces fluorescence from the camera: the launches
-      tally the excitation fluence into a grid, then `paths` paths per pixel start from the camera
-      and score the fluorescence source it holds (`tissuefit.transport._adjoint`; no phase
-      function towards a pinhole, so no heavy tail; bounded by the grid's interpolation);
-      "sites" (default) traces it from emission sites on the lights' side (`splits`, `site_rate`).
+      `nee_fluorescence`: "adjoint" (default) traces fluorescence from the camera: the launches
+      tally the excitation fluence into a grid, then `paths` paths per pixel (default 16) start
+      from the camera and score the fluorescence source it holds (`tissuefit.transport._adjoint`;
+      no phase function towards a pinhole, so no heavy tail; the grid adds an O(h^2) bias). On the
+      paper's lesion at 128 x 128 it cut the fluorescence groups' error 6-8x at equal time against
+      "sites", which traces it from emission sites on the lights' side (`splits`, `site_rate`;
+      experiments/render/RESULTS.md).
+    - "adjoint": everything from the camera: `paths` paths per pixel connect to the endoscope's
+      lights (light sampling and their own flights, by multiple importance sampling:
+      `tissuefit.transport._lights`) and score fluorescence as "nee" with "adjoint" fluorescence
+      does; the lights' launches only tally the excitation fluence (none are traced without
+      fluorophores). Cone lights only (a collimated flood cannot be hit by a path). `batches`,
+      `smoothing` as for "nee".
     - "photon-map": the paper's method (Zacher 2009): a surface photon map for the light leaving
       the tissue, spread by an angular model, and an S-step ray march through volume maps for
       fluorescence. Options:
@@ -61,8 +69,8 @@ class RenderOptions(eqx.Module):
     lobe: bool = eqx.field(static=True, default=True)
     smoothing: Literal["sure", "none"] = eqx.field(static=True, default="sure")
     smoothing_px: float | None = eqx.field(static=True, default=None)
-    nee_fluorescence: Literal["adjoint", "sites"] = eqx.field(static=True, default="sites")
-    paths: int = eqx.field(static=True, default=32)
+    nee_fluorescence: Literal["adjoint", "sites"] = eqx.field(static=True, default="adjoint")
+    paths: int = eqx.field(static=True, default=16)
     steps: int = eqx.field(static=True, default=5)
     step_length: float | None = eqx.field(static=True, default=None)
     kernel: str = eqx.field(static=True, default="epanechnikov")
@@ -79,9 +87,9 @@ class RenderOptions(eqx.Module):
 
     def __check_init__(self):
         if self.estimator not in ESTIMATORS:
-            raise ValueError(f"render.estimator = {self.estimator!r}; allowed 'nee' or 'photon-map'")
+            raise ValueError(f"render.estimator = {self.estimator!r}; allowed 'nee', 'adjoint' or 'photon-map'")
         check_positive_int("render.batches", self.batches, high=4096)
-        if self.estimator == "nee" and self.batches < 2:
+        if self.estimator != "photon-map" and self.batches < 2:
             raise ValueError(f"render.batches = {self.batches}; allowed 2 .. 4096 (the variance needs two batches)")
         check_positive_int("render.splits", self.splits, high=1024)
         if not isinstance(self.lobe, bool):

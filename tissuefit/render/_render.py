@@ -210,13 +210,17 @@ def render(
     setup = _setup(tissue, endoscope, spectrum, illumination, options, trace_options, spectral, observation_filter)
     photons = check_positive_int("photons", photons, high=2**40)
     key = jax.random.key(0) if key is None else key
-    if setup.options.estimator != "photon-map" and (keep_records or path_statistics):
+    camera_side = setup.options.estimator != "photon-map"
+    if camera_side and (keep_records or path_statistics):
         raise ValueError("render: keep_records and path_statistics belong to the photon-map estimator "
                          "(options.estimator = 'photon-map'); next-event images keep no records")
     tangents = tuple(tangents)
-    if setup.options.estimator != "nee" and (tangents or keep_batches):
-        raise ValueError("render: tangents and keep_batches belong to the next-event estimator (options.estimator = 'nee'); "
+    if not camera_side and (tangents or keep_batches):
+        raise ValueError("render: tangents and keep_batches belong to the 'nee' and 'adjoint' estimators; "
                          "photon-map renders are differentiated by tissuefit.replay.render_replay")
+    if setup.options.estimator == "adjoint" and not isinstance(setup.illumination, ConeLights):
+        raise ValueError("render: estimator 'adjoint' connects paths to the endoscope's cone lights; a "
+                         f"{type(setup.illumination).__name__} cannot be hit by a path (use estimator 'nee')")
     timings = {}
     t = time.perf_counter()
     view = camera_view(setup.endoscope, setup.options.margin)
@@ -225,12 +229,14 @@ def render(
     source, kept, fraction = setup.illumination.launches(photons, jax.random.fold_in(key, 1), setup.options.halton,
                                                          view.footprint)
     scene = SpectralScene(setup.tissue, source=source, spectrum=setup.spectrum)
-    if setup.options.estimator == "nee":
+    if camera_side:
+        adjoint = setup.options.estimator == "adjoint"
+        lights = setup.endoscope.area_lights() if adjoint else None
         image = trace_image(scene, setup.endoscope.camera(setup.options.batches), key=key, photons=kept,
                             options=setup.trace_options, spectral=setup.spectral, splits=setup.options.splits,
                             site_rate=setup.options.site_rate, lobe=setup.options.lobe, progress=progress, tangents=tangents,
-                            fluorescence=setup.options.nee_fluorescence,
-                            paths=setup.options.paths)
+                            fluorescence="adjoint" if adjoint else setup.options.nee_fluorescence,
+                            paths=setup.options.paths, lights=lights, launched_power=fraction)
         timings["trace"] = time.perf_counter() - t
         return _finish_nee(setup, view, image, kept, fraction, timings, keep_batches)
     traced = _trace_records(setup, scene, key, kept, chunks, progress, path_statistics)
@@ -263,7 +269,7 @@ def _finish_nee(setup: _Setup, view: View, image, kept: int, fraction: float, ti
     w = setup.transmission[:, None, None]
     covered = hit & (raw.sum(0) > 0)
     return RenderResult(
-        stack=(diffuse + specular) * w, diffuse=diffuse * w, specular=specular * w, estimator="nee",
+        stack=(diffuse + specular) * w, diffuse=diffuse * w, specular=specular * w, estimator=setup.options.estimator,
         wavelengths=setup.tissue.bands.wavelengths, hit=hit, covered=covered, photons=kept, launched_fraction=fraction,
         filter_transmission=setup.transmission, timings=timings, trace=image.trace, raw=raw * w,
         variance=variance * w**2, smoothing_px=sigma,

@@ -4,9 +4,11 @@
 (`tissuefit.io`) can check the spectral mode against the scene's optics before anything runs.
 """
 
+from ._adjoint import CameraPaths as CameraPaths, FluenceGrid as FluenceGrid
 from ._camera import PinholeCamera as PinholeCamera
 from ._config import TALLY_NAMES as TALLY_NAMES, TallySpec as TallySpec, TraceOptions as TraceOptions
 from ._image import ImageResult as ImageResult, trace_image as trace_image
+from ._lights import AreaLights as AreaLights
 from ._nee import EmissionSites as EmissionSites, ImageSpec as ImageSpec
 from ._physics import fresnel as fresnel
 from ._records import PhotonRecords as PhotonRecords, RecordSpec as RecordSpec, segment_log_ratio as segment_log_ratio

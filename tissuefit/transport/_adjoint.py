@@ -200,20 +200,30 @@ class CameraPaths(AbstractSource):
     launch uniforms, where the ray meets the surface z = 0; sample i // P (its batch: sample mod the
     camera's batches).
 
-    Fields: `fluence` [batches, excitation bands, voxels] the excitation fluence per unit launched
-    power [1/cm^2] of each batch (`FluenceGrid`; not differentiated), `tangents` [K, batches,
-    excitation bands, voxels] its derivatives along the trace's tangent directions (or None),
-    `camera` and `grid` static, `bands` (static): the emission bands the paths carry."""
+    Fields: `camera` (static); `bands` (static): the bands the paths carry (the emission bands
+    they score from the fluence, the lit bands they connect to lights: `_lights.py`). With
+    fluorescence: `grid` (static), `fluence` [batches, excitation bands, voxels] the excitation
+    fluence per unit power [1/cm^2] of each batch (`FluenceGrid`; not differentiated), `tangents`
+    [K, batches, excitation bands, voxels] its derivatives along the trace's tangent directions.
+    `light_scale`: the factor on the lights' radiance (`_lights.py`; traced, so that it does not
+    recompile: 1 / the lights' power the image is normalised to)."""
 
-    fluence: Float[Array, "batches bands voxels"]
     camera: PinholeCamera = eqx.field(static=True)
-    grid: FluenceGrid = eqx.field(static=True)
     bands: tuple[int, ...] = eqx.field(static=True)
+    grid: FluenceGrid | None = eqx.field(static=True, default=None)
+    fluence: Float[Array, "batches bands voxels"] | None = None
     tangents: Float[Array, "k batches bands voxels"] | None = None
+    light_scale: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.ones((), jnp.float64))
 
     def __check_init__(self):
         if not isinstance(self.camera, PinholeCamera):
             raise TypeError(f"paths.camera is a {type(self.camera).__name__}, not a PinholeCamera")
+        if not self.bands:
+            raise ValueError("paths.bands: at least one band")
+        if (self.grid is None) != (self.fluence is None):
+            raise ValueError("paths: a fluence grid and its fluence come together (grid and fluence)")
+        if self.grid is None:
+            return
         if not isinstance(self.grid, FluenceGrid):
             raise TypeError(f"paths.grid is a {type(self.grid).__name__}, not a FluenceGrid")
         want = (self.grid.batches, len(self.grid.bands), self.grid.voxels)
@@ -221,8 +231,6 @@ class CameraPaths(AbstractSource):
             raise ValueError(f"paths.fluence has shape {tuple(self.fluence.shape)}; expected {want} (batches, bands, voxels)")
         if self.grid.batches != self.camera.batches:
             raise ValueError(f"paths: the grid has {self.grid.batches} batches, the camera {self.camera.batches}")
-        if not self.bands:
-            raise ValueError("paths.bands: at least one emission band")
         if self.tangents is not None and tuple(self.tangents.shape[1:]) != want:
             raise ValueError(f"paths.tangents has shape {tuple(self.tangents.shape)}; expected (K, *{want})")
 
@@ -309,23 +317,63 @@ def fluence_of(sums, grid: FluenceGrid, photons: int) -> np.ndarray:
     return total / (per_batch * grid.volumes().reshape(1, 1, 1, -1))
 
 
-def _source(props, phi, w0, path, hits, score, med, config):
-    """What a path scores at its interactions, before the n^2 law, [lanes, slots]: w_k Q_k / mut_k
-    (module docstring) as a function of the media's coefficients `props` (mua, mus, g [media,
-    bands], conv [media, bands, bands]) and the fluence `phi` [lanes, excitation bands] at the
-    points; the path weight by its likelihood ratio (`path` None: at the traced coefficients)."""
+def weights(w0, path, hits, score, props):
+    """Band weights `w0` [lanes, slots] traced at the coefficients `props` held (mua, mus, g [media,
+    slots]), as functions of `props` by their likelihood ratio (`path` None: w0 itself)."""
     from ._records import segment_log_ratio
 
+    if path is None:
+        return w0
+    return w0 * jnp.exp(segment_log_ratio(path, hits, score, props, jax.tree.map(jax.lax.stop_gradient, props)))
+
+
+def path_rows(lanes, config) -> Array:
+    """The image row (batch * pixels + pixel) each camera path scores into (`CameraPaths`)."""
+    cam = config.image.camera
+    batch = (lanes.pid // cam.pixels) % cam.batches
+    return (batch * cam.pixels + lanes.pid % cam.pixels).astype(jnp.int32)
+
+
+def deposit(acc, lanes, config, fn, args, mask, medium, extra=None):
+    """Add `fn(props, [x,] *args, config)` [lanes, slots] of the lanes in `mask` into their pixel's
+    row of `acc.image` (and with tangents its derivative along each: `props` = the media's (mua,
+    mus, g [media, bands], conv [media, bands, bands]) differentiated along the trace's tangent
+    directions, and `extra` = (x, dx [lanes, K, ...]) an input with tangents of its own). The
+    value is multiplied by the number of bands the paths carry: their launch gives each band
+    1/slots of the importance (`medium_arrays`)."""
+    nb, nm, k = config.num_bands, config.num_media, config.tangents
+    props = (medium.mua.reshape(nm, nb), medium.mus.reshape(nm, nb), medium.g.reshape(nm, nb), medium.conv.reshape(nm, nb, nb))
+    if k:
+        (dmua, dmus, dg), dconv = medium.dprops
+        directions = (dmua.reshape(k, nm, nb), dmus.reshape(k, nm, nb), dg.reshape(k, nm, nb), dconv.reshape(k, nm, nb, nb))
+        if extra is None:
+            f = lambda p: fn(p, *args, config)  # noqa: E731
+            value, dvalue = jax.vmap(lambda t: jax.jvp(f, (props,), (t,)), out_axes=(None, 0))(directions)
+        else:
+            x, dx = extra
+            f = lambda p, e: fn(p, e, *args, config)  # noqa: E731
+            value, dvalue = jax.vmap(lambda t, de: jax.jvp(f, (props, x), (t, de)), in_axes=(0, 1),
+                                     out_axes=(None, 0))(directions, dx)
+        rows = jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1)
+    else:
+        rows = fn(props, *args, config) if extra is None else fn(props, extra[0], *args, config)
+    cam = config.image.camera
+    row = jnp.where(mask, path_rows(lanes, config), cam.batches * cam.pixels)
+    return acc._replace(image=acc.image.at[row].add((rows * config.slots).astype(jnp.float64), mode="drop"))
+
+
+def _source(props, phi, w0, path, hits, score, med, radiance, config):
+    """What a path scores at its interactions [lanes, slots]: w_k Q_k / mut0_k (n_a / n_y)^2 / (4 pi)
+    (module docstring) as a function of the media's coefficients `props` (mua, mus, g [media,
+    bands], conv [media, bands, bands]) and the fluence `phi` [lanes, excitation bands] at the
+    points; `radiance` [lanes] the n^2 law over 4 pi."""
     mua, mus, g, conv = props
     act, ex = jnp.asarray(config.active), jnp.asarray(config.image.grid.bands)
-    w = w0
-    if path is not None:
-        now = (mua[:, act], mus[:, act], g[:, act])
-        w = w0 * jnp.exp(segment_log_ratio(path, hits, score, now, jax.tree.map(jax.lax.stop_gradient, now)))
+    w = weights(w0, path, hits, score, (mua[:, act], mus[:, act], g[:, act]))
     emit = (mua + mus)[:, ex][:, :, None] * conv[:, ex][:, :, act]  # [media, n_ex, slots]: mut_i P[m, i, k]
     q = jnp.einsum("le,lek->lk", phi, emit[med])
     mut0 = jax.lax.stop_gradient(mua + mus)[:, act][med]
-    return w * q / jnp.where(mut0 > 0, mut0, jnp.inf)
+    return w * q / jnp.where(mut0 > 0, mut0, jnp.inf) * radiance[:, None]
 
 
 def score(acc, lanes, medium, config, *, interact, x, y, z_abs, med, path_in):
@@ -336,10 +384,9 @@ def score(acc, lanes, medium, config, *, interact, x, y, z_abs, med, path_in):
 
     cam = config.image.camera
     grid = config.image.grid
-    nb, nm, k = config.num_bands, config.num_media, config.tangents
+    k = config.tangents
     w0 = _arriving(lanes, lanes.w, path_in, lanes.hits, medium, config, interact, med)
     batch = ((lanes.pid // cam.pixels) % cam.batches).astype(jnp.int32)
-    pixel = (lanes.pid % cam.pixels).astype(jnp.int32)
     n_ex = len(grid.bands)
     voxel, inside = grid.voxel(x, y, z_abs)
     # the cell's average fluence (what the lights' pass estimates); rows [voxels, (1 + K) * batches *
@@ -347,24 +394,10 @@ def score(acc, lanes, medium, config, *, interact, x, y, z_abs, med, path_in):
     part = jnp.arange(1 + k, dtype=jnp.int32)[None, :, None] * (grid.batches * n_ex)
     cols = part + (batch * n_ex)[:, None, None] + jnp.arange(n_ex, dtype=jnp.int32)[None, None, :]
     phi = jnp.where(inside[:, None, None], medium.fluence[voxel[:, None, None], cols], 0.0)  # [lanes, 1 + K, n_ex]
-    props = (medium.mua.reshape(nm, nb), medium.mus.reshape(nm, nb), medium.g.reshape(nm, nb), medium.conv.reshape(nm, nb, nb))
     n_here = medium.n_ext[lanes.layer + 1]
-    # n^2 law; and each band's importance is 1 (`medium_arrays` launches 1/slots of it in each)
-    radiance = ((medium.n_ext[0] / n_here) ** 2 * (config.slots / (4.0 * math.pi)))[:, None]
-    if k:
-        (dmua, dmus, dg), dconv = medium.dprops
-        directions = (dmua.reshape(k, nm, nb), dmus.reshape(k, nm, nb), dg.reshape(k, nm, nb), dconv.reshape(k, nm, nb, nb))
-
-        def values(p, f):
-            return _source(p, f, w0, path_in, lanes.hits, lanes.score, med, config)
-
-        value, dvalue = jax.vmap(lambda t, df: jax.jvp(values, (props, phi[:, 0]), (t, df)), in_axes=(0, 1),
-                                 out_axes=(None, 0))(directions, phi[:, 1:])
-        rows = jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1) * radiance
-    else:
-        rows = _source(props, phi[:, 0], w0, None, None, None, med, config) * radiance
-    row = jnp.where(interact, batch * cam.pixels + pixel, cam.batches * cam.pixels)
-    return acc._replace(image=acc.image.at[row].add(rows.astype(jnp.float64), mode="drop"))
+    radiance = (medium.n_ext[0] / n_here) ** 2 / (4.0 * math.pi)
+    args = (w0, path_in if k else None, lanes.hits, lanes.score, med, radiance)
+    return deposit(acc, lanes, config, _source, args, interact, medium, extra=(phi[:, 0], phi[:, 1:]))
 
 
 def camera_footprint(camera: PinholeCamera, reach: float | None = None) -> tuple[float, float, float, float]:

@@ -134,17 +134,28 @@ class Connection(NamedTuple):
     factor: Array  # [n] 1/(cm^2 sr): T G / Omega_pixel, the factor from intensity [W/sr] to pixel radiance
 
 
-def connect(x, y, z_abs, layer, tissue, n_ext, z0, thickness, camera: PinholeCamera, solid_angle) -> Connection:
-    """The refracted ray from points (x, y, z_abs) [cm] in layer `layer` to the camera (module docstring).
+class RefractedPath(NamedTuple):
+    """`refracted_path`'s result per point (lanes)."""
+
+    valid: Array  # [n] bool: the refracted ray exists (no total internal reflection on the way)
+    direction: tuple  # (wx, wy, wz): the ray's direction at the point (up: wz < 0)
+    lengths: Array  # [n, media] cm: the ray's path length in each medium (layers, then regions)
+    transmit: Array  # [n]: T, the product of the Fresnel transmittances of the faces crossed
+    geometric: Array  # [n] 1/cm^2: G = 1 / (n_1^2 cos_1 cos_a S_1 S_3), solid angle at the point per area across the ray at the target
+    down: tuple  # (dx, dy, dz): the ray's direction in the ambient medium, from the target down to the surface
+
+
+def refracted_path(x, y, z_abs, layer, tissue, n_ext, z0, thickness, target) -> RefractedPath:
+    """The refracted ray from points (x, y, z_abs) [cm] in layer `layer` to `target` (tx, ty, tz)
+    above the surface (tz < 0; numbers or arrays per point), module docstring.
 
     `tissue`: the `SpectralTissue` (its layer count, regions and media); `n_ext` [layers + 2] (n
-    above, the layers', n below), `z0` and `thickness` [layers] in the arrays' dtype; `solid_angle`
-    [pixels] the pixels' solid angles (`PinholeCamera.solid_angles`). Regions (one medium each; not
-    voxel grids) take their part of each layer's path length: the straight segment's chord through
-    them. Everything is elementwise over the points (branch-free)."""
+    above, the layers', n below), `z0` and `thickness` [layers] in the arrays' dtype. Regions (one
+    medium each; not voxel grids) take their part of each layer's path length: the straight
+    segment's chord through them. Everything is elementwise over the points (branch-free)."""
     layers = tissue.num_layers
     dtype = x.dtype
-    cx, cy, cz = (jnp.asarray(c, dtype) for c in camera.position)
+    cx, cy, cz = (jnp.asarray(c, dtype) for c in target)
     h = -cz
     n_a = n_ext[0]
     dx, dy = cx - x, cy - y
@@ -192,19 +203,27 @@ def connect(x, y, z_abs, layer, tissue, n_ext, z0, thickness, camera: PinholeCam
         cos_here = jnp.where(layer == k, cos_k, cos_here)
         n_here = jnp.where(layer == k, n_l[k], n_here)
     geometric = 1.0 / (n_here * n_here * cos_here * cos_a * s1 * s3)
-    # direction at the point, towards the camera horizontally and up
+    # direction at the point, towards the target horizontally and up
     flat = rho > 1e-12 * h
     hx = jnp.where(flat, dx / jnp.where(flat, rho, 1.0), 1.0)
     hy = jnp.where(flat, dy / jnp.where(flat, rho, 1.0), 0.0)
     sin_here = p / n_here
     direction = (sin_here * hx, sin_here * hy, -cos_here)
     lengths = _media_lengths(tissue, lengths, t, z0, p, n_l, x, y, hx, hy)
-    # the ray in the ambient medium, from the pinhole down to the surface point
     sin_a = u * cos_a
-    pixel, inside = camera.pixel_of((-sin_a * hx, -sin_a * hy, cos_a))
-    valid = valid & inside
-    factor = jnp.where(valid, transmit * geometric / solid_angle[pixel].astype(dtype), 0.0)
-    return Connection(pixel=pixel, valid=valid, direction=direction, lengths=lengths, factor=factor)
+    return RefractedPath(valid=valid, direction=direction, lengths=lengths, transmit=transmit, geometric=geometric,
+                         down=(-sin_a * hx, -sin_a * hy, cos_a))
+
+
+def connect(x, y, z_abs, layer, tissue, n_ext, z0, thickness, camera: PinholeCamera, solid_angle) -> Connection:
+    """The refracted ray from points (x, y, z_abs) [cm] in layer `layer` to the camera
+    (`refracted_path`), the pixel it lands in and its factor T G / Omega_pixel; `solid_angle`
+    [pixels] the pixels' solid angles (`PinholeCamera.solid_angles`)."""
+    ray = refracted_path(x, y, z_abs, layer, tissue, n_ext, z0, thickness, camera.position)
+    pixel, inside = camera.pixel_of(ray.down)
+    valid = ray.valid & inside
+    factor = jnp.where(valid, ray.transmit * ray.geometric / solid_angle[pixel].astype(x.dtype), 0.0)
+    return Connection(pixel=pixel, valid=valid, direction=ray.direction, lengths=ray.lengths, factor=factor)
 
 
 def _media_lengths(tissue, lengths, t, z0, p, n_l, x, y, hx, hy):

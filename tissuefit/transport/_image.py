@@ -25,6 +25,7 @@ from typing import Literal
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._checks import bucket, check_positive_int, check_range
@@ -33,6 +34,7 @@ from ..scene import SpectralScene
 from ._adjoint import POWER_FLOOR, CameraPaths, FluenceGrid, camera_footprint, smooth_fluence, smooth_like
 from ._camera import PinholeCamera
 from ._config import TraceOptions
+from ._lights import AreaLights
 from ._nee import EmissionSites, ImageSpec
 from ._spectral import SpectralOptions, SpectralResult, trace_spectral
 
@@ -56,9 +58,10 @@ class ImageResult(eqx.Module):
       `untraced`: the power of sites of the generation after the last, left out (per launched photon).
     - `trace`: the `SpectralResult` of the launches (tallies of the first chunk, records dropped).
     - `timings`: seconds per stage ("launches", "sites", "paths").
-    - fluorescence from the camera: `fluorescence_batches` [batches, bands, H, W] its part of
-      `batches`, `grid` the `FluenceGrid`, `grid_smoothing` [excitation bands] the lateral width
-      [cells] its fluence was smoothed with (`smooth_fluence`), `paths` the paths traced per pixel.
+    - estimates from the camera: `camera_batches` [batches, bands, H, W] the part of `batches` the
+      camera's paths scored (`fluorescence_batches` the same when they scored fluorescence only),
+      `grid` the `FluenceGrid`, `grid_smoothing` [excitation bands] the lateral width [cells] its
+      fluence was smoothed with (`smooth_fluence`), `paths` the paths traced per pixel.
     """
 
     batches: np.ndarray
@@ -70,6 +73,7 @@ class ImageResult(eqx.Module):
     timings: dict
     tangent_batches: np.ndarray | None = None
     fluorescence_batches: np.ndarray | None = None
+    camera_batches: np.ndarray | None = None
     grid: FluenceGrid | None = None
     paths: int = 0
     grid_smoothing: np.ndarray | None = None
@@ -131,6 +135,8 @@ def trace_image(
     paths: int = 32,
     grid: FluenceGrid | None = None,
     path_options: TraceOptions | None = None,
+    lights: AreaLights | None = None,
+    launched_power: float = 1.0,
 ) -> ImageResult:
     """Trace `photons` launches of `scene` and score what `camera` sees (module docstring).
 
@@ -152,7 +158,12 @@ def trace_image(
       the image's derivative along each is scored too (`ImageResult.tangent_batches`).
     - `fluorescence`: "sites" (emission sites from the lights' side) or "adjoint" (from the camera,
       `_adjoint.py`): `paths` per pixel, through `grid` (default
-      `FluenceGrid.covering` the camera's footprint), traced with `path_options` (default `options`).
+      `FluenceGrid.covering` the camera's footprint), traced with `path_options` (default `options`
+      with the paths' own roulette threshold, `PATH_ROULETTE`).
+    - `lights`: `AreaLights` (with fluorescence="adjoint"): the scattered light is traced from the
+      camera too (`_lights.py`); the launches then only tally the fluence (none are traced without
+      fluorescence). `launched_power`: the power of the lights' units that `scene`'s launches carry
+      (the image is per unit launched power: the lights' light is divided by it).
     Returns an `ImageResult`.
     """
     if not isinstance(scene, SpectralScene):
@@ -166,10 +177,14 @@ def trace_image(
     check_range("site_rate", site_rate, unit="sites per interaction", low=0.0, high=1.0, low_open=True)
     if fluorescence not in ("sites", "adjoint"):
         raise ValueError(f"fluorescence = {fluorescence!r}; allowed 'sites' or 'adjoint'")
-    if fluorescence == "adjoint" and scene.tissue.fluorescent:
+    if lights is not None and not isinstance(lights, AreaLights):
+        raise TypeError(f"lights must be AreaLights, got {type(lights).__name__}")
+    if lights is not None and fluorescence != "adjoint":
+        raise ValueError("lights: the scattered light is traced from the camera with fluorescence='adjoint' only")
+    if fluorescence == "adjoint" and (scene.tissue.fluorescent or lights is not None):
         return _trace_adjoint(scene, camera, key=key, photons=photons, options=options, spectral=spectral, lobe=lobe,
                               chunk_photons=chunk_photons, progress=progress, tangents=tuple(tangents), paths=paths,
-                              grid=grid, path_options=path_options or options)
+                              grid=grid, path_options=path_options, lights=lights, launched_power=launched_power)
     timings = {"launches": 0.0, "sites": 0.0}
     sums = dsums = None  # batch sums (per batch: sum over its photons of their radiance) and their tangents
     tangents = tuple(tangents)
@@ -227,52 +242,83 @@ def fluorescence_bands(scene: SpectralScene) -> tuple[tuple[int, ...], tuple[int
     return tuple(int(b) for b in np.nonzero(excite)[0]), tuple(int(b) for b in np.nonzero(emit)[0])
 
 
+PATH_ROULETTE = 0.06
+"""Roulette threshold of the camera's paths, relative to their launch weight (1 / the bands they
+carry, shared paths): a path whose score has fallen to ~6 % of its start plays roulette. Measured on
+the lesion scene at 128 x 128 (experiments/render/RESULTS.md): relative to MCML's 1e-4 the paths
+took 6.8 s instead of 12.0 s for the same error (5.4 % against 5.2 %); at 20 % the error grew more
+than the time fell."""
+
+
+def path_roulette(options: TraceOptions, bands: int) -> TraceOptions:
+    """`options` with the camera paths' roulette threshold (`PATH_ROULETTE`) for paths carrying `bands` bands."""
+    return dataclasses.replace(options, roulette_threshold=max(options.roulette_threshold, PATH_ROULETTE / max(bands, 1)))
+
+
+def lit_bands(scene: SpectralScene) -> tuple[int, ...]:
+    """The bands the scene's source lights, above `POWER_FLOOR` of the strongest (concrete values)."""
+    power = np.asarray(scene.band_power())
+    return tuple(int(b) for b in np.nonzero((power > 0) & (power >= POWER_FLOOR * power.max()))[0])
+
+
 def _trace_adjoint(scene, camera, *, key, photons, options, spectral, lobe, chunk_photons, progress, tangents, paths, grid,
-                   path_options) -> ImageResult:
-    """`trace_image` with fluorescence from the camera (module docstring)."""
+                   path_options, lights, launched_power) -> ImageResult:
+    """`trace_image` with estimates from the camera (module docstring)."""
     paths = check_positive_int("paths", paths, high=1 << 20)
-    excite, emit = fluorescence_bands(scene)
-    if grid is None:
-        grid = FluenceGrid.covering(camera_footprint(camera), scene.tissue, excite or (0,), batches=camera.batches,
+    excite, emit = fluorescence_bands(scene) if scene.tissue.fluorescent else ((), ())
+    lit = lit_bands(scene) if lights is not None else ()
+    carried = tuple(sorted(set(emit) | set(lit)))
+    if path_options is None:
+        path_options = path_roulette(options, len(carried))
+    if grid is None and excite:
+        grid = FluenceGrid.covering(camera_footprint(camera), scene.tissue, excite, batches=camera.batches,
                                     emission_bands=emit)
-    elif not isinstance(grid, FluenceGrid):
+    elif grid is not None and not isinstance(grid, FluenceGrid):
         raise TypeError(f"grid must be a FluenceGrid, got {type(grid).__name__}")
-    elif grid.batches != camera.batches:
+    elif grid is not None and grid.batches != camera.batches:
         raise ValueError(f"grid.batches = {grid.batches}; allowed the camera's batches ({camera.batches})")
     timings = {"launches": 0.0, "sites": 0.0, "paths": 0.0}
-    sums = dsums = fluence = dfluence = None
-    first = None
-    spec = ImageSpec(camera=camera, lobe=lobe, grid=grid if excite else None)
-    for c, start in enumerate(range(0, photons, chunk_photons)):
-        n = min(chunk_photons, photons - start)
-        t0 = time.perf_counter()
-        done = (lambda k, s=start: progress(s + k)) if progress is not None else None
-        out = trace_spectral(scene, key=jax.random.fold_in(key, c), photons=n, options=options, spectral=spectral,
-                             image=spec, progress=done, tangents=tangents)
-        timings["launches"] += time.perf_counter() - t0
-        first = first or out
-        sums = _add(sums, out.image, n / photons)
-        dsums = _add(dsums, out.image_tangents, n / photons)
-        fluence = _add(fluence, out.fluence, n / photons)
-        dfluence = _add(dfluence, out.fluence_tangents, n / photons)
-    fluor = np.zeros_like(sums)
-    dfluor = None if dsums is None else np.zeros_like(dsums)
+    shape = (camera.batches, scene.tissue.bands.num_bands, camera.height, camera.width)
+    sums = np.zeros(shape)
+    dsums = np.zeros((camera.batches, len(tangents)) + shape[1:]) if tangents else None
+    fluence = dfluence = first = None
+    if lights is None or excite:  # the lights' pass: scattered light by next-event estimation, and/or the fluence
+        spec = ImageSpec(camera=camera, lobe=lobe and lights is None, grid=grid if excite else None, scatter=lights is None)
+        for c, start in enumerate(range(0, photons, chunk_photons)):
+            n = min(chunk_photons, photons - start)
+            t0 = time.perf_counter()
+            done = (lambda k, s=start: progress(s + k)) if progress is not None else None
+            out = trace_spectral(scene, key=jax.random.fold_in(key, c), photons=n, options=options, spectral=spectral,
+                                 image=spec, progress=done, tangents=tangents)
+            timings["launches"] += time.perf_counter() - t0
+            first = first or out
+            sums = sums + out.image * (n / photons)
+            dsums = _add(dsums, out.image_tangents, n / photons)
+            fluence = _add(fluence, out.fluence, n / photons)
+            dfluence = _add(dfluence, out.fluence_tangents, n / photons)
+    from_camera = np.zeros_like(sums)
+    dfrom_camera = None if dsums is None else np.zeros_like(dsums)
     widths = None
-    if excite and emit:
+    if carried:
         t0 = time.perf_counter()
-        fluence, widths = smooth_fluence(fluence, grid)
-        if dfluence is not None:
-            dfluence = smooth_like(dfluence, grid, widths)
-        source = CameraPaths(fluence=fluence, camera=camera, grid=grid, bands=emit, tangents=dfluence)
+        if fluence is not None:
+            fluence, widths = smooth_fluence(fluence, grid)
+            if dfluence is not None:
+                dfluence = smooth_like(dfluence, grid, widths)
+        check_range("launched_power", launched_power, unit="the lights' power", low=0.0, low_open=True)
+        source = CameraPaths(camera=camera, bands=carried, grid=grid if fluence is not None else None, fluence=fluence,
+                             tangents=dfluence, light_scale=jnp.asarray(1.0 / launched_power, jnp.float64))
         traced = trace_spectral(SpectralScene(scene.tissue, source=source, spectrum=scene.spectrum),
                                 key=jax.random.fold_in(key, 1 << 20), photons=paths * camera.pixels, options=path_options,
-                                spectral=spectral, image=ImageSpec(camera=camera, lobe=False), tangents=tangents)
+                                spectral=spectral, image=ImageSpec(camera=camera, lobe=False, lights=lights), tangents=tangents)
         # trace_spectral normalises per path; a pixel's value is the mean of its own paths
-        fluor = traced.image * camera.pixels
-        if dfluor is not None:
-            dfluor = traced.image_tangents * camera.pixels
+        from_camera = traced.image * camera.pixels
+        if dfrom_camera is not None:
+            dfrom_camera = traced.image_tangents * camera.pixels
+        first = first or traced
         timings["paths"] = time.perf_counter() - t0
-    return ImageResult(batches=sums + fluor, photons=photons, sites=(), emitted=(), untraced=0.0,
+    return ImageResult(batches=sums + from_camera, photons=photons, sites=(), emitted=(), untraced=0.0,
                        trace=dataclasses.replace(first, image=None, image_tangents=None, fluence=None, fluence_tangents=None),
-                       timings=timings, tangent_batches=None if dsums is None else dsums + dfluor,
-                       fluorescence_batches=fluor, grid=grid, paths=paths, grid_smoothing=widths)
+                       timings=timings, tangent_batches=None if dsums is None else dsums + dfrom_camera,
+                       fluorescence_batches=from_camera if lights is None else None, camera_batches=from_camera,
+                       grid=grid, paths=paths, grid_smoothing=widths)

@@ -66,6 +66,7 @@ from . import _adjoint, _physics as phys, _rng
 from ._adjoint import FluenceGrid
 from ._camera import Connection, PinholeCamera, connect, hg_intensity
 from ._lanes import ALIVE, IDLE, KILLED, _expand
+from ._lights import AreaLights
 from ._records import segment_log_ratio
 from ._spectral_state import SpectralConfig, _Sites
 from ._spectral_weights import _sample_index, band_weights
@@ -87,6 +88,10 @@ class ImageSpec(eqx.Module):
       by emission sites. The lights' trace then tallies the excitation fluence into the grid and
       scores only the scattered light; a trace of `CameraPaths` (`from_camera`, set by
       `trace_spectral`) scores the fluorescence source the grid holds.
+    - `lights`: `AreaLights` (`_lights.py`): a trace of `CameraPaths` scores the scattered light of
+      these lights too (light sampling and the paths' own flights, by multiple importance sampling).
+    - `scatter`: the lights' trace scores the scattered light by next-event estimation (default);
+      False with a `grid`: it only tallies the fluence (the camera's paths score the scattered light).
     """
 
     camera: PinholeCamera = eqx.field(static=True)
@@ -97,12 +102,18 @@ class ImageSpec(eqx.Module):
     lobe: bool = eqx.field(static=True, default=True)
     grid: FluenceGrid | None = eqx.field(static=True, default=None)
     from_camera: bool = eqx.field(static=True, default=False)
+    lights: AreaLights | None = eqx.field(static=True, default=None)
+    scatter: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
+        if self.lights is not None and not isinstance(self.lights, AreaLights):
+            raise TypeError(f"image.lights is a {type(self.lights).__name__}, not AreaLights")
+        if not self.scatter and self.grid is None:
+            raise ValueError("image: a trace that scores no scattered light (scatter=False) must tally a fluence grid")
         if self.grid is not None and not isinstance(self.grid, FluenceGrid):
             raise TypeError(f"image.grid is a {type(self.grid).__name__}, not a FluenceGrid")
-        if self.from_camera and self.grid is None:
-            raise ValueError("image: paths from the camera need the fluence grid they score (image.grid)")
+        if self.from_camera and self.grid is None and self.lights is None:
+            raise ValueError("image: paths from the camera need a fluence grid (image.grid) or lights (image.lights) to score")
         if not isinstance(self.camera, PinholeCamera):
             raise TypeError(f"image.camera is a {type(self.camera).__name__}, not a PinholeCamera")
         if not isinstance(self.sites, (int, np.integer)) or isinstance(self.sites, bool) or self.sites < 0:
@@ -278,8 +289,10 @@ def score(acc, lanes, medium, tissue, config: SpectralConfig, *, interact, x, y,
     interaction); `path_in` its path lengths with this hop; `xi` a uniform per lane for the site
     decision. Returns (acc, the connection's direction at the points: the camera lobe's axis)."""
     cam = config.image.camera
-    conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
     w0 = _arriving(lanes, lanes.w, path_in, lanes.hits, medium, config, interact, med)
+    if not config.image.scatter:  # the lights' pass of estimates from the camera: the fluence only
+        return _adjoint.tally(acc, lanes, medium, config, w0, interact, x, y, z_abs, med, path_in), None
+    conn = connect(x, y, z_abs, lanes.layer, tissue, medium.n_ext, medium.z0, medium.thickness, cam, medium.solid_angle)
     cos = lanes.ux * conn.direction[0] + lanes.uy * conn.direction[1] + lanes.uz * conn.direction[2]
     vertex = _Vertex(w0=w0, path=path_in if config.tangents else None, hits=lanes.hits, score=lanes.score, med=med,
                      cos=cos, lengths=conn.lengths, factor=conn.factor, mis=lanes.mis)

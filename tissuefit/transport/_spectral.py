@@ -165,8 +165,8 @@ def resolve_config(scene: SpectralScene, options: TraceOptions, spectral: Spectr
     """The static configuration of a spectral trace, decided in Python from the scene."""
     active = scene.active_bands()
     fluorescent = scene.tissue.fluorescent
-    if image is not None and image.grid is not None:
-        # fluorescence from the camera (`_adjoint.py`): neither pass samples conversions. The
+    if image is not None and (image.grid is not None or image.from_camera):
+        # estimates from the camera (`_adjoint.py`): neither pass samples conversions. The
         # lights' pass carries the lit bands; the camera's paths the bands they score.
         fluorescent = False
         if image.from_camera:
@@ -304,11 +304,11 @@ def trace_spectral(
     if image is not None:
         image = dataclasses.replace(image, tangents=len(tangents), from_sites=isinstance(scene.source, EmissionSites))
         if isinstance(scene.source, CameraPaths):
-            # paths from the camera score the source of their own grid; no lobe (no connection)
+            # paths from the camera score the source of their own grid (and the lights); no lobe
             image = dataclasses.replace(image, grid=scene.source.grid, from_camera=True, lobe=False)
             if scene.source.camera != image.camera:
                 raise ValueError("scene.source: the camera paths belong to another camera than image.camera")
-        if image.from_camera and tangents and scene.source.tangents is None:
+        if image.from_camera and tangents and scene.source.grid is not None and scene.source.tangents is None:
             raise ValueError("tangents: the camera paths' fluence carries no tangents; trace the lights with the same tangents")
         if image.from_sites and tangents and scene.source.tangent is None:
             raise ValueError("tangents: the emission sites carry no tangents; trace them with the same tangents")

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _adjoint, _nee, _physics as phys, _rng
+from . import _adjoint, _lights, _nee, _physics as phys, _rng
 from ._lanes import ALIVE, ESC_BOTTOM, ESC_TOP, IDLE, KILLED, _expand, _pick, cross_or_not, free_path, launch_photons, launch_uniforms
 from ._spectral_state import SpectralConfig, _Acc, _Buffer, _Lanes, _Medium, boosted
 from ._spectral_weights import _convert_batch, _convert_batch_per_band, _flush_per_band, _sample_index, band_weights
@@ -136,6 +136,9 @@ def refill(lanes: _Lanes, acc: _Acc, medium: _Medium, scene, words, end, config:
         band=(pick if shared else act[pick]).astype(jnp.int32), converted=jnp.zeros(x.shape, bool),
         status=status, pid=pid, rng=rng, heat=zeros, roulette=zeros, steps=jnp.zeros(x.shape, jnp.int32),
         origin=None if lanes.origin is None else pid, mis=None if lanes.mis is None else jnp.ones_like(x),
+        # paths to lights: no scattering vertex yet (a flight from the launch reaches a light by itself only)
+        **({} if lanes.vtx is None else dict(vtx=lanes.vtx, vdir=lanes.vdir, vlayer=lanes.vlayer, vmed=lanes.vmed,
+                                             vdirect=jnp.zeros_like(lanes.vdirect))),
     )
     lanes = jax.tree.map(lambda a, b: jnp.where(_expand(start, a), a, b), new, lanes)
     lanes = lanes._replace(status=jnp.where(free & ~start, IDLE, lanes.status))
@@ -179,6 +182,8 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         for _ in range(3):
             xi, rng = _rng.next_uniform(rng, dtype)
             xi_lobe.append(xi)
+    if config.lights:  # the light sample of a path from the camera (`_lights.score`)
+        xi_light, rng = _lights.draws(rng, dtype)
 
     # hop: a free path (or the carried rest of one) against the layer's faces and region boundaries
     turbid, safe_mut, s, face, db = free_path(lanes, medium, mut_c, xi_step)
@@ -258,8 +263,16 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     new_band = lanes.band
     w_new = jnp.where(interact, keep, w)
     if config.adjoint:
-        acc = _adjoint.score(acc, lanes._replace(uz=uz), medium, config, interact=interact, x=x, y=y,
-                             z_abs=_pick(medium.z0, layer) + z, med=med, path_in=path_in)
+        here_z = _pick(medium.z0, layer) + z
+        arriving = lanes._replace(uz=uz)
+        if config.image.grid is not None:
+            acc = _adjoint.score(acc, arriving, medium, config, interact=interact, x=x, y=y, z_abs=here_z, med=med,
+                                 path_in=path_in)
+        if config.lights:
+            acc = _lights.score(acc, arriving, medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z, med=med,
+                                path_in=path_in, xi=xi_light, g=g_c)
+            acc = _lights.score_escape(acc, arriving, medium, tissue, config, leave=live & hit_face & leave_top, x=x, y=y,
+                                       up=(bx, by, -cos_t), path=path)
     elif config.image is not None:
         here_z = _pick(medium.z0, layer) + z
         acc, to_camera = _nee.score(acc, lanes._replace(uz=uz), medium, tissue, config, interact=interact, x=x, y=y, z_abs=here_z,
@@ -314,6 +327,9 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
             score = jnp.where(c2, 0.0, score)
         replay["score"] = score
     mis = lanes.mis
+    vertex = {}
+    if config.lights:
+        vertex = _lights.remember(lanes._replace(uz=uz), interact & ~convert, hit_face & reflect, x, y, _pick(medium.z0, layer) + z, med)
     if lobe:
         acc, mis = _nee.score_lobe(
             acc, lanes._replace(uz=uz), medium, tissue, config, scatter=interact & ~convert, x=x, y=y, z=z, z_abs=here_z,
@@ -348,7 +364,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         sleft=sleft,
         layer=jnp.where(hit_face, b_layer, layer).astype(jnp.int32), medium=new_med.astype(jnp.int32),
         band=new_band.astype(jnp.int32), converted=converted, status=status.astype(jnp.int32), rng=rng,
-        heat=seg_heat, roulette=seg_roulette, steps=lanes.steps + 1, mis=mis,
+        heat=seg_heat, roulette=seg_roulette, steps=lanes.steps + 1, mis=mis, **vertex,
     )
     new = lanes._replace(**upd)
     out_lanes = jax.tree.map(lambda a, b: jnp.where(_expand(live, a), a, b), new, lanes)

@@ -65,6 +65,11 @@ class SpectralConfig(eqx.Module):
         return self.image is not None and self.image.from_camera
 
     @property
+    def lights(self) -> bool:
+        """Paths from the camera that score the lights' scattered light (`_lights.py`)."""
+        return self.adjoint and self.image.lights is not None
+
+    @property
     def slots(self) -> int:
         return len(self.active)
 
@@ -118,6 +123,11 @@ class _Lanes(NamedTuple):
     origin: Array | None = None  # image: the photon whose launch this light descends from (its batch)
     dlog_s: Array | None = None  # image tangents, from sites: [lanes, slots, K] d log(spectrum) per direction
     mis: Array | None = None  # camera lobe: the weight of the next interaction's scattered light (`_nee.py`; 1 if not direct)
+    vtx: Array | None = None  # camera paths to lights: [lanes, 3] the last scattering vertex (x, y, absolute depth)
+    vdir: Array | None = None  # ... [lanes, 3] the direction arriving there
+    vlayer: Array | None = None  # ... its layer
+    vmed: Array | None = None  # ... its medium
+    vdirect: Array | None = None  # ... no reflection since (`_lights.score_escape`)
 
 
 class _Buffer(NamedTuple):
@@ -188,6 +198,7 @@ class _Medium(NamedTuple):
     solid_angle: Array | None = None  # image: [pixels] the camera pixels' solid angles [sr]
     dprops: tuple | None = None  # image tangents: (dmua, dmus, dg) [K, media * bands], dconv [K, media * bands, bands]
     fluence: Array | None = None  # paths from the camera: [voxels, (1 + K) * batches * excitation bands] (`CameraPaths`)
+    lit: Array | None = None  # paths to lights: [slots] each band's share of the lights' power (times `CameraPaths.light_scale`)
 
 
 def boosted(q_a, boost: float):
@@ -250,10 +261,13 @@ def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
             q = jnp.stack([boosted(q_a.max(1), config.boost),
                            boosted(jnp.where(reach[None, :], q_a, 0.0).max(1), config.boost)], axis=1).astype(dtype)
     power = scene.band_power()
-    fluence = None
     if config.adjoint:
-        # the paths carry importance 1 in every band they score (`_adjoint.score` undoes the 1/slots)
+        # the paths carry importance 1 in every band they score (`_adjoint.deposit` undoes the 1/slots)
         power = jnp.zeros(nb).at[jnp.asarray(config.active)].set(1.0 / config.slots)
+    fluence = lit = None
+    if config.lights:
+        lit = (scene.spectrum.band_power(t.bands)[jnp.asarray(config.active)] * scene.source.light_scale).astype(dtype)
+    if config.adjoint and config.image.grid is not None:
         # [voxels, (1 + K) * batches * excitation bands]: the values a lane reads side by side
         src = scene.source
         parts = [jnp.asarray(src.fluence, dtype)[None]]
@@ -270,7 +284,7 @@ def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
         log_mut_ratio=log_mut_ratio, dmut=dmut,
         solid_angle=None if config.image is None else jnp.asarray(config.image.camera.solid_angles(), dtype),
         dprops=_tangent_arrays(t, tangents, config, dtype) if config.tangents and tangents else None,
-        fluence=fluence,
+        fluence=fluence, lit=lit,
     )
 
 
@@ -345,4 +359,14 @@ def idle_lanes(lanes: int, config: SpectralConfig, dtype) -> _Lanes:
         heat=zf, roulette=zf, steps=zi, origin=None if config.image is None else jnp.zeros(lanes, jnp.int64),
         dlog_s=jnp.zeros((lanes, config.slots, config.tangents), dtype) if config.tangents and config.launch_sites else None,
         mis=jnp.ones(lanes, dtype) if config.image is not None and config.image.lobe else None,
+        **_vertex_fields(lanes, config, dtype),
     )
+
+
+def _vertex_fields(lanes: int, config: SpectralConfig, dtype) -> dict:
+    """The lanes' last scattering vertex (paths to lights), or nothing."""
+    if not config.lights:
+        return {}
+    zi = jnp.zeros(lanes, jnp.int32)
+    return dict(vtx=jnp.zeros((lanes, 3), dtype), vdir=jnp.zeros((lanes, 3), dtype), vlayer=zi, vmed=zi,
+                vdirect=jnp.zeros(lanes, bool))
