@@ -14,8 +14,8 @@ sqrt((sum (x - ref)^2 - sum var_ref) / sum ref^2).
 A setting is estimator:launches:paths: "adjoint" (`RenderOptions(estimator="adjoint")`: scattered light
 and fluorescence from the camera), "nee" (scattered light by next-event estimation from the lights,
 fluorescence from the camera) or "sites" (next-event estimation with fluorescence from emission
-sites); paths per pixel where the camera's paths run. Writes results_acceptance_<size>.json and
-prints a markdown table.
+sites); paths per pixel where the camera's paths run. Appends the run to results_acceptance_<size>.json
+and prints a markdown table.
 """
 
 from __future__ import annotations
@@ -65,6 +65,9 @@ def main() -> None:
     ap.add_argument("--settings", default="adjoint:100000:8,adjoint:100000:16,adjoint:200000:16")
     ap.add_argument("--factor", type=int, default=16, help="reference launches and paths / the largest setting's")
     ap.add_argument("--reference-mode", default="adjoint", help="the reference's estimator (a setting's first field)")
+    ap.add_argument("--reference-launches", type=int, help="instead of --factor x the largest setting's (reuses a "
+                    "saved reference made with the same numbers)")
+    ap.add_argument("--reference-paths", type=int, help="instead of --factor x the largest setting's")
     args = ap.parse_args()
     settings = [(m, int(n), int(k)) for m, n, k in (s.split(":") for s in args.settings.split(","))]
     run = io.read_scene(SCENE)
@@ -79,8 +82,8 @@ def main() -> None:
                         options=options, observation_filter=run.render.observation_filter)
         return result, time.perf_counter() - t0
 
-    ref_photons = args.factor * max(n for _, n, _ in settings)
-    ref_paths = args.factor * max(k for _, _, k in settings)
+    ref_photons = args.reference_launches or args.factor * max(n for _, n, _ in settings)
+    ref_paths = args.reference_paths or args.factor * max(k for _, _, k in settings)
     reference_file = HERE / f"reference_acceptance_{args.size}.npz"
     ref_label = (f"{args.reference_mode}, unsmoothed, {ref_photons:,} launches and {ref_paths} paths per pixel")
     saved = np.load(reference_file) if reference_file.exists() else None
@@ -115,8 +118,10 @@ def main() -> None:
                       f"standard error per group: {noise}. Cells: estimated error against the exact image (the raw "
                       "relative RMS difference to the reference in brackets).", "", *table])
     print(text)
-    (HERE / f"results_acceptance_{args.size}.json").write_text(json.dumps(
-        {"machine": m, "size": args.size, "reference": ref_label, "rows": rows}, indent=2, default=str) + "\n")
+    out = HERE / f"results_acceptance_{args.size}.json"
+    runs = json.loads(out.read_text()).get("runs", []) if out.exists() else []  # earlier runs are kept
+    runs.append({"machine": m, "size": args.size, "reference": ref_label, "rows": rows})
+    out.write_text(json.dumps({"runs": runs}, indent=2, default=str) + "\n")
 
 
 if __name__ == "__main__":

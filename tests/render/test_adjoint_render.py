@@ -58,6 +58,7 @@ def test_adjoint_render_refuses_a_floodlight():
                options=RenderOptions(estimator="adjoint"))
 
 
+@pytest.mark.slow  # ~75 s on the 2-core CI; the estimator is not the default (its agreement test above stays)
 def test_adjoint_render_tangents_match_finite_differences():
     """d(image sum)/d(mua, mus, g) of the top layer by path replay of the camera's paths (light
     sampling and their own flights), against central differences of independent renders."""

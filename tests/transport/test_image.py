@@ -30,8 +30,8 @@ def _blocks(batches):
     return np.stack([batches.sum((-2, -1))] + [q.sum((-2, -1)) for q in quads], axis=-1)
 
 
-# without the lobe (not the default): slow, ~90 s of the default suite's 2-core CI budget; the lobe's
-# absence is still compared image for image in test_camera_lobe_keeps_the_image_with_a_region_and_two_layers
+# without the lobe (not the default): slow, 60-90 s each of the default suite's 2-core CI budget; the
+# lobe's absence is still compared image for image in test_camera_lobe_keeps_the_image_with_a_region_and_two_layers
 NO_LOBE_SLOW = pytest.param(False, marks=pytest.mark.slow, id="False")
 
 
@@ -62,7 +62,7 @@ def test_image_matches_the_brute_force_reference_with_fluorescence(lobe):
     assert b.mean(0)[1, 0] > 0.3 * b.mean(0)[0, 0]  # the fluorescence is a real part of the picture
 
 
-@pytest.mark.parametrize("lobe", [False, True])
+@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
 def test_floodlit_image_is_the_angle_resolved_reflectance(lobe):
     """Under a wide uniform beam of irradiance E0 the radiance towards angle theta is
     E0 rd_a(theta) / cos(theta) (MCML's Rd(alpha), per steradian): the camera's pixels, binned by
