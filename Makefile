@@ -17,8 +17,8 @@ demo: $(STAMP)
 	@echo "wrote out/demo/paper_tissue.json and out/demo/paper_tissue.png"
 	$(BIN)/tissuefit simulate data_spec/examples/paper_fluorescence.toml --photons 1000000 --out out/demo --plot
 	@echo "wrote out/demo/paper_fluorescence.json and out/demo/paper_fluorescence.png"
-	@# The example's own settings (300 000 photons, 256 x 256) took 93-124 s on the shared, loaded 2-core
-	@# machine (60-68 s of CPU, about half compilation); 100 000 photons at 128 x 128 took 62-83 s (47-52 s CPU).
+	@# 100 000 photons at 128 x 128 took 32 s with compilation on the idle 2-core machine (2026-12-06); warm
+	@# renders of the example's own size (256 x 256) take 23-30 s (experiments/render/RESULTS.md).
 	$(BIN)/tissuefit render data_spec/examples/paper_lesion_render.toml --out out/demo/render --photons 100000 --width 128 --height 128
 	@echo "wrote out/demo/render/paper_lesion_render.{tif,json}, out/demo/render/preview.png and out/demo/render/bands.png"
 	@# Last, a fit of a synthetic measurement (data_spec/examples/fit_demo.toml): blood fraction and oxygen

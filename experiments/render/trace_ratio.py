@@ -2,7 +2,7 @@
 
 The paper's lesion scene (data_spec/examples/paper_lesion_render.toml: mucosa layers, PpIX lesion,
 violet LED). Warm, one process, interleaved twice, photons per second of:
-- `trace`: the single-band tracer, float32, pencil beam, on the layers at the LED's strongest band;
+- `trace`: the single-band tracer, float32, pencil beam, on the layers (no lesion) at the LED's strongest band;
 - `trace_spectral`: 21 bands, shared paths, fluorescence (collagen, PpIX), the lesion region, pencil beam;
 - the same with surface and volume records on (what the photon-map render keeps);
 - the default render's pass of the lights' photons at 128 x 128 (next-event to the camera, camera lobe,
@@ -45,7 +45,10 @@ def main() -> None:
     tissue, spectrum = run.scene.tissue, run.scene.spectrum
     scene = tf.SpectralScene(tissue, source=tf.PencilBeam(), spectrum=spectrum)
     band = int(np.argmax(np.asarray(scene.band_power())))
-    single = tf.Scene(tissue.at_band(band), tf.PencilBeam())
+    geo = tissue.geometry  # the layers without the lesion: `at_band` has no single-band form of a region
+    layers = tf.SpectralTissue(tissue.layers, n=geo.n, thickness=geo.thickness, n_above=geo.n_above,
+                               n_below=geo.n_below, bands=tissue.bands)
+    single = tf.Scene(layers.at_band(band), tf.PencilBeam())
     endoscope = dataclasses.replace(run.render.endoscope, width=args.size, height=args.size)
     n = args.photons
 
