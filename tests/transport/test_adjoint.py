@@ -46,6 +46,27 @@ def test_grid_refuses_bad_geometry_naming_the_field():
         _grid(bands=())
 
 
+def test_fluence_smoothing_chooses_a_width_per_band_and_treats_batches_alike():
+    """SURE per excitation band: a band whose fluence is flat under its noise gets a wide kernel, a
+    band with a sharp lateral step and little noise stays (nearly) unsmoothed; the same linear map is
+    applied to every batch (their mean is the smoothed mean)."""
+    from tissuefit.transport._adjoint import smooth_fluence, smooth_like
+
+    grid = _grid(nx=24, ny=24, z_edges=(0.0, 0.01, 0.02), bands=(0, 1), batches=16)
+    rng = np.random.default_rng(0)
+    truth = np.ones((2, 2, 24, 24))  # [bands, nz, ny, nx]
+    truth[1, :, :, 12:] = 20.0  # band 1: a sharp step across x
+    noise = np.asarray([1.0, 0.01])[:, None, None, None]
+    batches = truth[None] + noise[None] * rng.standard_normal((16, 2, 2, 24, 24))
+    smoothed, widths = smooth_fluence(batches.reshape(16, 2, -1), grid)
+    assert widths.shape == (2,)
+    assert widths[0] >= 3.0 and widths[1] <= 0.5, widths
+    out = smoothed.reshape(16, 2, 2, 24, 24)
+    assert np.abs(out[:, 0].mean(0) - 1.0).max() < 0.25  # band 0's noise (sd 0.25 per cell in the mean) is gone
+    mean_smoothed = smooth_like(batches.mean(0).reshape(2, -1), grid, widths).reshape(2, 2, 24, 24)
+    np.testing.assert_allclose(out.mean(0), mean_smoothed, rtol=1e-12, atol=1e-12)
+
+
 def test_camera_path_weights_average_to_one_over_each_pixel():
     """Uniform points on the image plane weighted by A / (|d|^3 Omega): each pixel's weights average
     to 1 (the solid angle they sample is the pixel's)."""
