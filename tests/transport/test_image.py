@@ -33,9 +33,15 @@ def _blocks(batches):
 # without the lobe (not the default): slow, 60-90 s each of the default suite's 2-core CI budget; the
 # lobe's absence is still compared image for image in test_camera_lobe_keeps_the_image_with_a_region_and_two_layers
 NO_LOBE_SLOW = pytest.param(False, marks=pytest.mark.slow, id="False")
+# With fluorescence from emission sites (trace_image's default here; no longer the render's): slow,
+# 120-200 s each on CI. Their twins with the render's default (the lights' next-event estimate and
+# the camera lobe for band 0, fluorescence from the camera for band 1) run in the default suite:
+# tests/transport/test_adjoint.py's brute-force and finite-difference tests; the emission sites are
+# still checked there against the camera's paths, block by block with a lesion.
+SITES_SLOW = pytest.param(True, marks=pytest.mark.slow, id="True")
 
 
-@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
+@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, SITES_SLOW])
 def test_image_matches_the_brute_force_reference_with_fluorescence(lobe):
     """Scattered light (band 0) and fluorescence (band 1: emitted straight to the camera, and
     scattered before it escapes) against the per-photon tracer with sampled conversions.
@@ -97,7 +103,7 @@ def test_floodlit_image_is_the_angle_resolved_reflectance(lobe):
     assert chi2 < len(bins) + 4 * math.sqrt(2 * len(bins)), chi2
 
 
-@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
+@pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, SITES_SLOW])
 def test_image_tangents_match_finite_differences(lobe):
     """The image's derivatives by path replay of every scored contribution (`tangents`), summed over
     the image per band, against central differences of independent traces at +-h, in the layer's
