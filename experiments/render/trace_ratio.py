@@ -69,7 +69,7 @@ def main() -> None:
             observation_filter=run.render.observation_filter).timings["trace_launches"],
     }
     seconds = {name: [] for name in runs}
-    for name, fn in runs.items():
+    for fn in runs.values():
         fn(jax.random.key(0))  # compile
     for rep in range(2):
         for name, fn in runs.items():
