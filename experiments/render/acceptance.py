@@ -36,27 +36,13 @@ tf.configure(compilation_cache=None)
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine, machine_line  # noqa: E402
+from _groups import GROUPS, group_errors  # noqa: E402
 
 from tissuefit import io  # noqa: E402
 from tissuefit.render import RenderOptions, render  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 SCENE = HERE.parents[1] / "data_spec" / "examples" / "paper_lesion_render.toml"
-GROUPS = {"violet": (400, 440), "blue-green": (440, 616), "red": (616, 721)}
-
-
-def group_errors(stack, reference, wavelengths, covered, ref_variance) -> dict:
-    """Per band group: relative RMS difference, and with the reference's variance taken out ("exact")."""
-    out = {}
-    for name, (lo, hi) in GROUPS.items():
-        bands = (wavelengths >= lo) & (wavelengths < hi)
-        diff2 = float(np.sum((stack[bands] - reference[bands])[:, covered] ** 2))
-        ref2 = float(np.sum(reference[bands][:, covered] ** 2))
-        noise = float(np.sum(ref_variance[bands][:, covered]))
-        out[name] = float(np.sqrt(diff2 / ref2))
-        out[name + " exact"] = float(np.sqrt(max(diff2 - noise, 0.0) / ref2))
-        out[name + " ref noise"] = float(np.sqrt(noise / ref2))
-    return out
 
 
 def main() -> None:

@@ -33,13 +33,13 @@ tf.configure()
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine, machine_line  # noqa: E402
+from _groups import GROUPS, group_errors  # noqa: E402
 
 from tissuefit import io  # noqa: E402
 from tissuefit.render import RenderOptions, render  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 SCENE = HERE.parents[1] / "data_spec" / "examples" / "paper_lesion_render.toml"
-GROUPS = {"violet": (400, 440), "blue-green": (440, 616), "red": (616, 721)}
 SETTINGS = {  # label: (options, photon counts: None = all of --photons, else the first one)
     "nee + SURE, no camera lobe": (dict(estimator="nee", lobe=False), None),
     "nee + SURE, camera lobe (default)": (dict(estimator="nee", lobe=True), None),
@@ -47,21 +47,6 @@ SETTINGS = {  # label: (options, photon counts: None = all of --photons, else th
     "nee, unsmoothed, camera lobe": (dict(estimator="nee", smoothing="none", lobe=True), 1),
     "photon map (paper)": (dict(estimator="photon-map"), 1),
 }
-
-
-def group_errors(stack, reference, wavelengths, covered, ref_variance=None) -> dict:
-    """Per band group: the relative RMS difference, and with `ref_variance` also the estimated error
-    against the exact image (key + " exact"; nan where the difference is within the reference's noise)."""
-    out = {}
-    for name, (lo, hi) in GROUPS.items():
-        bands = (wavelengths >= lo) & (wavelengths < hi)
-        diff2 = np.sum((stack[bands] - reference[bands])[:, covered] ** 2)
-        ref2 = np.sum(reference[bands][:, covered] ** 2)
-        out[name] = float(np.sqrt(diff2 / ref2))
-        if ref_variance is not None:
-            excess = diff2 - np.sum(ref_variance[bands][:, covered])
-            out[name + " exact"] = float(np.sqrt(excess / ref2)) if excess > 0 else float("nan")
-    return out
 
 
 def main() -> None:

@@ -25,13 +25,13 @@ tf.configure(compilation_cache=None)
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine, machine_line  # noqa: E402
+from _groups import GROUPS, group_errors  # noqa: E402
 
 from tissuefit import io  # noqa: E402
 from tissuefit.render import RenderOptions, render  # noqa: E402
 from tissuefit.transport._adjoint import FluenceGrid  # noqa: E402
 
 SCENE = Path(__file__).resolve().parents[2] / "data_spec" / "examples" / "paper_lesion_render.toml"
-GROUPS = {"violet": (400, 440), "blue-green": (440, 616), "red": (616, 721)}
 
 
 def main() -> None:
@@ -65,12 +65,8 @@ def main() -> None:
     for cells, stack in stacks.items():
         if cells == max(stacks):
             continue
-        cols = []
-        for lo, hi in GROUPS.values():
-            b = (wl >= lo) & (wl < hi)
-            rel = [np.sqrt(np.sum((stack[b][:, m] - finest[b][:, m]) ** 2) / np.sum(finest[b][:, m] ** 2))
-                   for m in (covered, lesion)]
-            cols.append(f"{100 * rel[0]:.2f} % / {100 * rel[1]:.2f} %")
+        errors = [group_errors(stack, finest, wl, m) for m in (covered, lesion)]
+        cols = [f"{100 * errors[0][g]:.2f} % / {100 * errors[1][g]:.2f} %" for g in GROUPS]
         print(f"| {cells} | " + " | ".join(cols) + " |")
 
 

@@ -14,9 +14,8 @@ import tissuefit as tf
 from tissuefit.transport import PinholeCamera, trace_image, trace_spectral
 from tissuefit.transport._adjoint import CameraPaths, FluenceGrid, camera_footprint
 from tissuefit.transport._nee import ImageSpec
-from tissuefit.transport._reference_camera import image_reference
 
-from .test_image import _blocks, _fluorescent_tissue
+from .test_image import _fluorescent_tissue, assert_matches_the_brute_force_reference
 
 BANDS = tf.BandGrid.uniform(400, 416, 16)
 
@@ -124,17 +123,7 @@ def test_adjoint_image_matches_the_brute_force_reference_with_fluorescence(lobe)
     scene = tf.SpectralScene(tissue, source=tf.PencilBeam(), spectrum=tf.BoxcarSpectrum(392.0, 408.0))
     fast = trace_image(scene, camera, key=jax.random.key(3), photons=200_000, lobe=lobe, fluorescence="adjoint",
                        paths=400)
-    mua, mus, g = (np.asarray(a)[0] for a in tissue.properties())
-    ref = image_reference(n=1.4, mua=mua, mus=mus, g=g, conversion=np.asarray(tissue.conversion())[0],
-                          band_power=np.asarray(scene.band_power()), camera=camera, photons=6000, seed=5,
-                          conversion_boost=5.0, batches=40)
-    a, b = _blocks(fast.batches), _blocks(ref)
-    diff = a.mean(0) - b.mean(0)
-    sd = np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
-    z = diff / sd
-    assert np.all(np.abs(z) < 4.5), z
-    assert float(np.sum(z**2)) < z.size + 4 * math.sqrt(2 * z.size), z
-    assert b.mean(0)[1, 0] > 0.3 * b.mean(0)[0, 0]
+    assert_matches_the_brute_force_reference(tissue, scene, camera, fast)
 
 
 def test_adjoint_and_emission_sites_agree_pixel_block_by_block_with_a_lesion():

@@ -30,6 +30,23 @@ def _blocks(batches):
     return np.stack([batches.sum((-2, -1))] + [q.sum((-2, -1)) for q in quads], axis=-1)
 
 
+def assert_matches_the_brute_force_reference(tissue, scene, camera, fast):
+    """`fast` (a `trace_image` result of `scene` on `_fluorescent_tissue` with n = 1.4) against the
+    per-photon tracer with sampled conversions: the image's total and its quadrants per band, each
+    within 4.5 standard errors, and their chi^2."""
+    mua, mus, g = (np.asarray(a)[0] for a in tissue.properties())
+    ref = image_reference(n=1.4, mua=mua, mus=mus, g=g, conversion=np.asarray(tissue.conversion())[0],
+                          band_power=np.asarray(scene.band_power()), camera=camera, photons=6000, seed=5,
+                          conversion_boost=5.0, batches=40)
+    a, b = _blocks(fast.batches), _blocks(ref)
+    diff = a.mean(0) - b.mean(0)
+    sd = np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
+    z = diff / sd
+    assert np.all(np.abs(z) < 4.5), z
+    assert float(np.sum(z**2)) < z.size + 4 * math.sqrt(2 * z.size), z
+    assert b.mean(0)[1, 0] > 0.3 * b.mean(0)[0, 0]  # the fluorescence is a real part of the picture
+
+
 # without the lobe (not the default): slow, 60-90 s each of the default suite's 2-core CI budget; the
 # lobe's absence is still compared image for image in test_camera_lobe_keeps_the_image_with_a_region_and_two_layers
 NO_LOBE_SLOW = pytest.param(False, marks=pytest.mark.slow, id="False")
@@ -55,17 +72,7 @@ def test_image_matches_the_brute_force_reference_with_fluorescence(lobe):
                            half_width=0.06, width=6, height=6, batches=40)
     scene = tf.SpectralScene(tissue, source=tf.PencilBeam(), spectrum=tf.BoxcarSpectrum(392.0, 408.0))
     fast = trace_image(scene, camera, key=jax.random.key(3), photons=200_000, splits=2, lobe=lobe)
-    mua, mus, g = (np.asarray(a)[0] for a in tissue.properties())
-    ref = image_reference(n=1.4, mua=mua, mus=mus, g=g, conversion=np.asarray(tissue.conversion())[0],
-                          band_power=np.asarray(scene.band_power()), camera=camera, photons=6000, seed=5,
-                          conversion_boost=5.0, batches=40)
-    a, b = _blocks(fast.batches), _blocks(ref)
-    diff = a.mean(0) - b.mean(0)
-    sd = np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
-    z = diff / sd
-    assert np.all(np.abs(z) < 4.5), z
-    assert float(np.sum(z**2)) < z.size + 4 * math.sqrt(2 * z.size), z
-    assert b.mean(0)[1, 0] > 0.3 * b.mean(0)[0, 0]  # the fluorescence is a real part of the picture
+    assert_matches_the_brute_force_reference(tissue, scene, camera, fast)
 
 
 @pytest.mark.parametrize("lobe", [NO_LOBE_SLOW, True])
