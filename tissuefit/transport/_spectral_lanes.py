@@ -329,7 +329,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
     mis = lanes.mis
     vertex = {}
     if config.lights:
-        vertex = _lights.remember(lanes._replace(uz=uz), interact & ~convert, hit_face & reflect, x, y, _pick(medium.z0, layer) + z, med)
+        vertex = _lights.remember(lanes._replace(uz=uz), interact & ~convert, hit_face & reflect, x, y, here_z, med)  # lights: adjoint
     if lobe:
         acc, mis = _nee.score_lobe(
             acc, lanes._replace(uz=uz), medium, tissue, config, scatter=interact & ~convert, x=x, y=y, z=z, z_abs=here_z,
