@@ -302,6 +302,11 @@ def _map_parser(commands) -> None:
                     help="cosine of the viewing angle against the surface normal (default 1: straight down)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
                     help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
+    mp.add_argument("--light", metavar="white|violet|P1,P2,...", default="white",
+                    help="the illumination per band in the stack's units: white (default: 1 in every band, or a stack "
+                         "divided by a white reference), violet (a PDD camera's 405 nm LED, 20 nm FWHM, peak band 1, "
+                         "no other light: the red bands see fluorescence alone), or one number per band. Fluorescence "
+                         "excited in band j scales with its value in j")
     mp.add_argument("--chunk", type=int, metavar="P", default=256, help="pixels per vmapped solve (default 256)")
     mp.add_argument("--model-photons", type=int, metavar="N", default=50000,
                     help="photons of the white Monte Carlo trace (default 50000)")

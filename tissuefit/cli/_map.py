@@ -11,6 +11,27 @@ from ._common import out_folder, render_run
 from ._main import InvalidInput, check_interrupt
 
 
+def parse_light(text: str, bands):
+    """`--light`: None (white), the violet LED's band powers (peak 1), or one number per band."""
+    import numpy as np
+
+    text = text.strip().lower()
+    if text == "white":
+        return None
+    if text == "violet":
+        from ..scene import GaussianSpectrum
+
+        p = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(bands))
+        return p / p.max()
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise ValueError(f"--light = {text!r}; allowed white, violet or one number per band (comma separated)") from None
+    if values.size != bands.num_bands:
+        raise ValueError(f"--light has {values.size} numbers; the scene's band grid has {bands.num_bands}")
+    return values
+
+
 def run(args) -> int:
     out = out_folder(args.out)
     scene = render_run(args.scene)
@@ -23,7 +44,7 @@ def run(args) -> int:
         if args.smoothness is not None:
             check_range("--smoothness", args.smoothness, unit="unconstrained units", low=0.0, low_open=True)
         from ..fit import initial_values
-        from ..maps import build_model, free_parameters, map as map_stack
+        from ..maps import free_parameters, map as map_stack, model_for_tissue
 
         tissue = initial_values(tissue, args.init)
         free_parameters(tissue, free)  # names checked before the model is built or the stack read
@@ -33,21 +54,20 @@ def run(args) -> int:
         if measurement.shape[0] != tissue.bands.num_bands:  # before the model is built
             raise ValueError(f"measured has {measurement.shape[0]} bands; the model's band grid has "
                              f"{tissue.bands.num_bands} ({args.scene})")
-        _, _, g = tissue.properties()
-        white = build_model((float(g[0, 0]),), (float(tissue.geometry.n[0]),), photons=args.model_photons,
-                            seed=args.model_seed, progress=None if args.json else
-                            (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
+        light = parse_light(args.light, tissue.bands)
+        white = model_for_tissue(tissue, photons=args.model_photons, seed=args.model_seed, progress=None if args.json else
+                                 (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
 
         def progress(done, total):
             check_interrupt()
             if not args.json:
                 print(f"  {done}/{total} pixels", file=sys.stderr, flush=True)
 
-        result = map_stack(measurement, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos,
+        result = map_stack(measurement, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos, light=light,
                            smoothness=args.smoothness, chunk=args.chunk, progress=progress)
     except ValueError as err:
         raise InvalidInput(f"{args.measured}: {err}") from None
-    extra = {"scene_file": str(args.scene), "measured": str(args.measured), "free": free, "init": args.init,
+    extra = {"scene_file": str(args.scene), "measured": str(args.measured), "free": free, "init": args.init, "light": args.light,
              "units": measured.units, "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}}
     files = io.write_maps(out, result, extra=extra)
     args.partial.files += files

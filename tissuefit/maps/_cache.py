@@ -18,27 +18,32 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_writer
+from . import _fluorescence
 from ._build import A_FLOOR, COS_EDGES, LOG_A, build_node, check_node
 from ._model import WhiteModel
 
-FORMAT = "tissuefit-white-mc/1"
+FORMAT = "tissuefit-white-mc/2"
+FLUORESCENCE_PHOTONS = 50_000
+"""Default photons of a node's fluorescence trace (half analog, half boosted; `_fluorescence.py`)."""
 
 
 @functools.lru_cache(maxsize=1)
 def _source_hash() -> str:
     root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
-    for f in sorted([*(root / "transport").glob("*.py"), root / "maps" / "_build.py"]):
+    for f in sorted([*(root / "transport").glob("*.py"), root / "maps" / "_build.py", root / "maps" / "_fluorescence.py"]):
         h.update(f.name.encode())
         h.update(f.read_bytes())
     return h.hexdigest()
 
 
-def model_key(g_nodes, n_nodes, *, photons: int, seed: int, a_floor: float) -> str:
-    """The cache key (hex) of a model with these settings and this tracer."""
+def model_key(g_nodes, n_nodes, *, photons: int, seed: int, a_floor: float, fluorescence: int = 0) -> str:
+    """The cache key (hex) of a model with these settings and this tracer (`fluorescence`: the
+    fluorescence trace's photons, 0 = none)."""
     doc = dict(format=FORMAT, g=[round(float(g), 6) for g in g_nodes], n=[round(float(n), 6) for n in n_nodes],
                photons=int(photons), seed=int(seed), a_floor=float(a_floor), log_a=list(LOG_A),
-               cos_edges=list(COS_EDGES), source=_source_hash())
+               cos_edges=list(COS_EDGES), source=_source_hash(), fluorescence=int(fluorescence),
+               depth=list(_fluorescence.DEPTH), log_a_f=list(_fluorescence.LOG_A_F), boost=_fluorescence.BOOST)
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:24]
 
 
@@ -51,11 +56,14 @@ def default_model_dir() -> Path | None:
 
 def _save(path: Path, model: WhiteModel, key: str) -> None:
     buf = io.BytesIO()
+    fl = ({} if not model.fluorescent else
+          dict(fl_source=model.fl_source, fl_escape=model.fl_escape, fl_rel_variance=model.fl_rel_variance))
     np.savez(buf, grid=model.grid, log_value=model.log_value, log_slope=model.log_slope,
-             rel_variance=model.rel_variance, eps=model.eps,
+             rel_variance=model.rel_variance, eps=model.eps, **fl,
              meta=np.frombuffer(json.dumps(dict(format=FORMAT, key=key, g_nodes=model.g_nodes, n_nodes=model.n_nodes,
                                                 photons=model.photons, a_floor=model.a_floor, seed=model.seed,
-                                                cos_edges=model.cos_edges)).encode(), np.uint8))
+                                                cos_edges=model.cos_edges, fl_photons=model.fl_photons)).encode(),
+                                np.uint8))
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_writer(path, binary=True) as handle:
         handle.write(buf.getvalue())
@@ -72,35 +80,46 @@ def _load(path: Path, key: str) -> WhiteModel | None:
                               a_floor=float(meta["a_floor"]), seed=int(meta["seed"]), grid=z["grid"],
                               grid_spec=(float(z["grid"][0]), float(z["grid"][1] - z["grid"][0]), int(z["grid"].size)),
                               log_value=z["log_value"], log_slope=z["log_slope"], rel_variance=z["rel_variance"],
-                              eps=z["eps"])
+                              eps=z["eps"], fl_photons=int(meta.get("fl_photons", 0)),
+                              **{k: z[k] for k in ("fl_source", "fl_escape", "fl_rel_variance") if k in z.files})
     except (OSError, ValueError, KeyError):
         return None  # unreadable or stale: rebuilt (and overwritten) by the caller
 
 
 def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: int = 0, a_floor: float = A_FLOOR,
-                cache: str | Path | bool | None = True, progress=None) -> WhiteModel:
+                fluorescence: int | bool = False, cache: str | Path | bool | None = True, progress=None) -> WhiteModel:
     """A `WhiteModel` on the (g, n) nodes: read from the cache when built before, else traced
     (one white Monte Carlo trace of `photons` photons per node; about 20 s per node at g = 0.9 on
-    2 CPU cores, longer at higher g) and cached. `cache`: True (the default folder,
-    `default_model_dir()`), a folder, or False/None (no cache). `progress(text)` hears each node."""
+    2 CPU cores, longer at higher g) and cached. `fluorescence`: also the fluorescence tables, from
+    a trace of that many photons per node (True: `FLUORESCENCE_PHOTONS`; False/0: none).
+    `cache`: True (the default folder, `default_model_dir()`), a folder, or False/None (no cache).
+    `progress(text)` hears each node."""
+    fl_photons = FLUORESCENCE_PHOTONS if fluorescence is True else int(fluorescence or 0)
     g_nodes = tuple(sorted({check_node(g, 1.4)[0] for g in np.atleast_1d(g_nodes)}))
     n_nodes = tuple(sorted({check_node(0.5, n)[1] for n in np.atleast_1d(n_nodes)}))
-    key = model_key(g_nodes, n_nodes, photons=photons, seed=seed, a_floor=a_floor)
+    key = model_key(g_nodes, n_nodes, photons=photons, seed=seed, a_floor=a_floor, fluorescence=fl_photons)
     folder = default_model_dir() if cache is True else (Path(cache) if cache else None)
     path = None if folder is None else folder / f"white-{key}.npz"
     if path is not None and path.exists():
         model = _load(path, key)
         if model is not None:
             return model
-    tables = []
+    tables, fl_tables = [], []
     for g in g_nodes:
-        row = []
+        row, fl_row = [], []
         for n in n_nodes:
             row.append(build_node(g, n, photons=photons, seed=seed, a_floor=a_floor))
             if progress is not None:
                 progress(f"white Monte Carlo node g = {g:g}, n = {n:g}: {row[-1]['seconds']:.1f} s")
+            if fl_photons:
+                fl_row.append(_fluorescence.build_fluorescence_node(g, n, photons=fl_photons, seed=seed, a_floor=a_floor,
+                                                                    cos_edges=COS_EDGES))
+                if progress is not None:
+                    progress(f"  fluorescence: {fl_row[-1]['conversions']} conversions, {fl_row[-1]['seconds']:.1f} s")
         tables.append(row)
-    model = WhiteModel.from_tables(tables, g_nodes=g_nodes, n_nodes=n_nodes, photons=photons, a_floor=a_floor, seed=seed)
+        fl_tables.append(fl_row)
+    model = WhiteModel.from_tables(tables, g_nodes=g_nodes, n_nodes=n_nodes, photons=photons, a_floor=a_floor, seed=seed,
+                                   fluorescence=fl_tables if fl_photons else None, fl_photons=fl_photons)
     if path is not None:
         _save(path, model, key)
     return model
@@ -108,7 +127,11 @@ def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: 
 
 def model_for_tissue(tissue, **kwargs) -> WhiteModel:
     """The model for the top layer of a `SpectralTissue`: its g (which must be the same in every
-    band) and n, one node (exact: no interpolation)."""
+    band) and n, one node (exact: no interpolation), with fluorescence tables when the layer has a
+    fluorophore (unless `fluorescence` is given)."""
+    from ..scene import Fluorophore
+
+    kwargs.setdefault("fluorescence", any(isinstance(a, Fluorophore) for a in tissue.layers[0].absorbers))
     _, _, g = tissue.properties()
     g = np.asarray(g)[0]
     if np.ptp(g) > 1e-9:

@@ -16,6 +16,11 @@ escape at high absorption), so a map uses the bin of each pixel's viewing angle.
 
 The standard error is the Monte Carlo one of the nodes' tables, interpolated as a relative error
 (the interpolation's own error is measured by experiments/maps/model_check.py, not included).
+
+Fluorescence (`fluorescence`, when the model was built with it; `_fluorescence.py`): the integral
+I_jk [cm] of the excitation fluence in band j times the escape of emission in band k over depth,
+from which a fluorophore's escaping fluorescence is Y s_jk mua_f,j I_jk; interpolated over the g and
+n nodes like the reflectance (ln I at fixed a', Catmull-Rom weights).
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from . import _fluorescence
 from ._build import COS_EDGES
 
 LN10 = float(np.log(10.0))
@@ -103,10 +109,28 @@ class WhiteModel(eqx.Module):
     log_slope: np.ndarray
     rel_variance: np.ndarray
     eps: np.ndarray
+    fl_source: np.ndarray | None = None
+    """[G, N, B, A_f] ln S_b(a) of the fluorescence tables (`_fluorescence.py`), or None (not built)."""
+    fl_escape: np.ndarray | None = None
+    """[G, N, V, B, A_f] ln e_b(a)."""
+    fl_rel_variance: np.ndarray | None = None
+    """[G, N, V, A_v, A_v] relative variance of I at equal reduced scattering."""
+    fl_photons: int = eqx.field(static=True, default=0)
+
+    @property
+    def fluorescent(self) -> bool:
+        return self.fl_source is not None
 
     @classmethod
-    def from_tables(cls, tables, *, g_nodes, n_nodes, photons, a_floor, seed, cos_edges=COS_EDGES) -> WhiteModel:
-        """Assemble from `tables[i][j]` (`_build.tabulate` of node (g_nodes[i], n_nodes[j]))."""
+    def from_tables(cls, tables, *, g_nodes, n_nodes, photons, a_floor, seed, cos_edges=COS_EDGES,
+                    fluorescence=None, fl_photons: int = 0) -> WhiteModel:
+        """Assemble from `tables[i][j]` (`_build.tabulate` of node (g_nodes[i], n_nodes[j])) and, if
+        given, `fluorescence[i][j]` (`_fluorescence.tabulate_fluorescence`)."""
+        fl = {}
+        if fluorescence is not None:
+            ln = lambda key: np.log(np.maximum(np.array([[t[key] for t in row] for row in fluorescence]), TINY))  # noqa: E731
+            fl = dict(fl_source=ln("source"), fl_escape=ln("escape"), fl_photons=int(fl_photons),
+                      fl_rel_variance=np.array([[t["rel_variance"] for t in row] for row in fluorescence]))
         grid = np.asarray(tables[0][0]["grid"])
         val = np.array([[t["value"] for t in row] for row in tables])
         slope = np.array([[t["slope"] for t in row] for row in tables])
@@ -119,7 +143,7 @@ class WhiteModel(eqx.Module):
                    log_value=np.where(pos, np.log(safe), np.log(TINY)),
                    log_slope=np.where(pos, slope / safe * LN10, 0.0),
                    rel_variance=np.where(pos, var / safe / safe, 0.0),
-                   eps=np.array([[t["eps"] for t in row] for row in tables]))
+                   eps=np.array([[t["eps"] for t in row] for row in tables]), **fl)
 
     @property
     def num_views(self) -> int:
@@ -158,6 +182,27 @@ class WhiteModel(eqx.Module):
                 ly, rv = self._node(i, j, u, view)
                 w = wg[i] * wn[j]
                 out = out + w * ly
+                rel = rel + w**2 * rv
+        return out, rel
+
+    def log_fluorescence(self, mua, mus, g, n, view, pairs):
+        """(ln I [P] in cm, its relative variance [P]) for the medium mua, mus [bands] (1/cm),
+        scalars g, n, `view` [V], at the band pairs `pairs` = ((excitation j ...), (emission k ...))
+        (module docstring). Differentiable in mua, mus, g, n."""
+        if not self.fluorescent:
+            raise ValueError("this WhiteModel was built without fluorescence tables (build_model(fluorescence=True))")
+        wg = hermite_weights(self.g_nodes, g)
+        wn = hermite_weights(self.n_nodes, n)
+        view = jnp.asarray(view)
+        out = 0.0
+        rel = 0.0
+        for i, gi in enumerate(self.g_nodes):
+            for j in range(len(self.n_nodes)):
+                ln_i, rv = _fluorescence.node_integral(jnp.asarray(self.fl_source[i, j]), jnp.asarray(self.fl_escape[i, j]),
+                                                       jnp.asarray(self.fl_rel_variance[i, j]), mua, mus, gi, g, view,
+                                                       pairs)
+                w = wg[i] * wn[j]
+                out = out + w * ln_i
                 rel = rel + w**2 * rv
         return out, rel
 

@@ -35,7 +35,7 @@ import optimistix as optx
 from .._checks import check_positive_int, check_range
 from .._setup import float64
 from ._cache import model_for_tissue
-from ._model import WhiteModel, view_weights
+from ._model import TINY, WhiteModel, view_weights
 from ._result import MapResult
 from ._spectra import PixelSpectra, free_parameters
 
@@ -51,16 +51,36 @@ class Problem(eqx.Module):
     parameters: tuple = eqx.field(static=True)
     n: float = eqx.field(static=True)
     scale: bool = eqx.field(static=True)
+    light: np.ndarray | None = None
+    """[bands] the illumination's power per band in the stack's units (None: 1 in every band)."""
 
     def values(self, x):
         vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
         return jnp.stack(vals)
 
     def model(self, x, view):
-        """(ln rho [bands], relative variance [bands]) at unconstrained x (scale excluded)."""
-        free = self.values(x)
+        """(ln y [bands], relative variance [bands]) at unconstrained x (scale excluded): the
+        reflectance, and with fluorophores in the layer their escaping fluorescence,
+        y_k = P_k rho_k + sum_j P_j M_jk I_jk (P the light per band, M `PixelSpectra.conversion`)."""
+        return self.predict(self.values(x), view)
+
+    def predict(self, free, view):
+        """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
-        return self.white.log_reflectance(mua, mus, g, self.n, view)
+        ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
+        if not self.spectra.fluorophores:
+            return (ly, rel) if self.light is None else (ly + jnp.log(jnp.asarray(self.light)), rel)
+        light = jnp.ones(mua.shape) if self.light is None else jnp.asarray(self.light)
+        pairs = self.spectra.pairs
+        j, k = (np.asarray(p, np.int32) for p in pairs)
+        into = jnp.asarray(np.eye(mua.shape[0])[k])  # [P, bands]: pair p lands in band k_p
+        ln_i, rel_i = self.white.log_fluorescence(mua, mus, g, self.n, view, pairs)
+        terms = light[j] * self.spectra.conversion(free) * jnp.exp(ln_i)  # [P]
+        rho = light * jnp.exp(ly)
+        total = rho + terms @ into
+        var = rho**2 * rel + (terms**2 * rel_i) @ into
+        safe = jnp.maximum(total, TINY)
+        return jnp.log(safe), var / safe**2
 
     def residual(self, x, args):
         y, var, use, view, prior_mean, prior_w = args
@@ -207,7 +227,7 @@ def _as_measurement(measured):
                     "(tissuefit.io.measurement(stack) builds one from a prepared measured stack)")
 
 
-def setup(measured, model, free, *, white=None, scale=True, view=1.0):
+def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None):
     """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs."""
     from ..scene import SpectralTissue
 
@@ -234,7 +254,15 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0):
     if not isinstance(white, WhiteModel):
         raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
     spectra = PixelSpectra(model, parameters)
-    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale))
+    if spectra.fluorophores and not white.fluorescent:
+        raise ValueError("model's top layer has a fluorophore but white was built without fluorescence tables; "
+                         "build it with tissuefit.maps.build_model(..., fluorescence=True) or model_for_tissue(model)")
+    if light is not None:
+        light = np.asarray(light, np.float64)
+        if light.shape != (nb,):
+            raise ValueError(f"light has shape {light.shape}; expected ({nb},): the illumination's power per band")
+        check_range("light", light, unit="stack units per band", low=0.0)
+    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale), light)
     _, height, width = m.shape
     cos = np.broadcast_to(np.asarray(view, np.float64), (height, width)) if view is not None else None
     vw = (view_weights(cos, white.cos_edges).reshape(height * width, -1) if cos is not None
@@ -243,7 +271,7 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0):
 
 
 @float64
-def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool = True, view=1.0,
+def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool = True, view=1.0, light=None,
         smoothness: float | None = None, passes: int = 2, chunk: int = 256, max_steps: int = 100,
         rtol: float = 1e-6, atol: float = 1e-8, progress=None) -> MapResult:
     """Per-pixel parameter maps of a measured stack (module docstring).
@@ -259,6 +287,10 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     - `scale`: fit a per-pixel scale (irradiance x calibration; default on).
     - `view`: cosine of each pixel's viewing angle against the surface normal, scalar or [H, W]
       (default 1: looking straight down); None compares with the hemispherical reflectance.
+    - `light`: [bands] the illumination's power per band in the stack's units (default 1 in every
+      band: a white light, or a stack divided by a white reference). Fluorescence excited in band
+      j and seen in band k scales with light[j], the reflectance in band k with light[k]: a PDD
+      camera's violet light with red bands dark gives light [1, ..., 0, ...].
     - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
       neighbours' mean (None: independent pixels); `passes` solves when it is on.
     - `chunk`: pixels per vmapped solve (memory); `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
@@ -272,7 +304,7 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     check_range("atol", atol, unit="-", low=0.0, low_open=True)
     if smoothness is not None:
         check_range("smoothness", smoothness, unit="unconstrained units", low=0.0, low_open=True)
-    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view, light=light)
     nb, height, width = m.shape
     npx = height * width
     y = np.ascontiguousarray(m.data.reshape(nb, -1).T)
@@ -330,15 +362,18 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
                                    max_steps=int(max_steps), rtol=float(rtol), atol=float(atol),
                                    white=dict(g_nodes=list(problem.white.g_nodes), n_nodes=list(problem.white.n_nodes),
                                               photons=problem.white.photons, a_floor=problem.white.a_floor,
-                                              seed=problem.white.seed)))
+                                              seed=problem.white.seed, fluorescence_photons=problem.white.fl_photons),
+                                   fluorophores=[f for f, _ in problem.spectra.fluorophores],
+                                   light=None if light is None else np.asarray(light, np.float64).tolist()))
 
 
 @float64
-def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, max_steps=100, rtol=1e-6, atol=1e-8):
+def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, light=None, max_steps=100, rtol=1e-6,
+                  atol=1e-8):
     """The reference: the same least squares, one pixel at a time (a Python loop of single-pixel
     optimistix solves, Gauss-Newton then Levenberg-Marquardt where it fails; no vmap, no chunks).
     Returns (values [P, H, W], sigma [P, H, W])."""
-    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view)
+    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view, light=light)
     nb, height, width = m.shape
     y = m.data.reshape(nb, -1).T
     use = m.mask.reshape(nb, -1).T

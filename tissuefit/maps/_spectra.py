@@ -5,7 +5,8 @@ _fluorophores.py) once, before `jit`, into bases on the band grid:
 
     mua_j = f S A_ox,j + f (1 - S) A_de,j      Blood without packaging (linear in f S and f (1 - S);
                                                band averages commute with the linear model)
-          + c (d sigma_f,j)                    each Fluorophore (mua_f = d c sigma_f)
+          + c (d sigma_f,j)                    each Fluorophore (mua_f = d c sigma_f; its emission:
+                                               `conversion`, Y s_jk mua_f,j)
           + mua basis_j                        each ConstantAbsorption
           + conc (ln 10 eps_j)                 each TabulatedAbsorber
     mus'_j = a sum_k W_jk (lambda_jk / 500 nm)^-b   PowerLawScattering (the band's own quadrature)
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..fit import FitParameter, Layout, scene_parameters
-from ..scene import Blood, ConstantAbsorption, ConstantScattering, Fluorophore, PowerLawScattering, TabulatedAbsorber
+from ..scene import Blood, ConstantAbsorption, ConstantScattering, Fluorophore, PowerLawScattering, TabulatedAbsorber, emission_spectrum
 
 GAUSS_POINTS = 4
 """Nodes per band of the power law's quadrature (`gauss_rule`)."""
@@ -64,6 +65,9 @@ def gauss_rule(nodes: np.ndarray, weights: np.ndarray, points: int) -> tuple[np.
     return out_x, out_w
 
 
+PAIR_FLOOR = 1e-4
+"""Relative floor of the band pairs the fluorescence model evaluates (`PixelSpectra.pairs`)."""
+
 ALIASES = {"saturation": "blood_saturation", "ppix": "c_ppix"}
 """Short names `--free` accepts beside the fit's (`saturation` for `blood_saturation`)."""
 
@@ -99,6 +103,15 @@ class PixelSpectra(eqx.Module):
     terms: tuple = eqx.field(static=True)
     """(kind, fields, basis index) per absorption term."""
     bases: np.ndarray
+    fluorophores: tuple = eqx.field(static=True)
+    """(field, basis index) per fluorophore, in the order of `emission`."""
+    emission: np.ndarray
+    """[F, bands, bands]: quantum yield x emission share s_jk per fluorophore (`conversion`)."""
+    pairs: tuple = eqx.field(static=True)
+    """((excitation j, ...), (emission k, ...)): the band pairs some fluorophore converts between:
+    those whose mua_f,j Y s_jk at c = 1 is at least `PAIR_FLOOR` of the fluorophore's largest (the
+    model EEMs' Gaussian tails reach every pair; on collagen and PpIX the pairs left out carry 6e-5
+    of the converted light)."""
     log_nodes: np.ndarray
     weights: np.ndarray
     scattering: str = eqx.field(static=True)
@@ -113,7 +126,7 @@ class PixelSpectra(eqx.Module):
         self.names = tuple(p.name.split(".", 1)[1] for p in parameters)
         fixed = {k: float(np.asarray(p.where(tissue)).reshape(-1)[0]) for k, p in table.items()
                  if k not in self.names and np.asarray(p.where(tissue)).size == 1}
-        terms, bases = [], []
+        terms, bases, fluorophores, emission = [], [], [], []
         n_const = n_tab = 0
         seen = set()
         for ab in optics.absorbers:
@@ -132,8 +145,11 @@ class PixelSpectra(eqx.Module):
                 short = {"protoporphyrin_ix": "ppix"}.get(ab.name, ab.name)
                 bases.append(np.asarray(ab.d * ab.specific_absorption))
                 terms.append(("linear", (f"c_{short}",), len(bases) - 1))
+                fluorophores.append((f"c_{short}", len(bases) - 1))
+                emission.append(float(np.asarray(ab.quantum_yield)) * np.asarray(emission_spectrum(ab.eem)))
                 fixed.setdefault(f"c_{short}", float(np.asarray(ab.c)))
-                fixed.pop(f"c_{ab.name}", None)
+                if short != ab.name:
+                    fixed.pop(f"c_{ab.name}", None)
             elif isinstance(ab, ConstantAbsorption):
                 name = "mua" if n_const == 0 else f"mua{n_const}"
                 n_const += 1
@@ -166,7 +182,15 @@ class PixelSpectra(eqx.Module):
             raise ValueError(f"per-pixel maps: scattering {type(sc).__name__} is not covered by the per-pixel model")
         self.fixed = tuple(sorted(fixed.items()))
         self.terms = tuple(terms)
+        self.fluorophores = tuple(fluorophores)
+        self.emission = np.asarray(emission, np.float64).reshape(len(emission), bands.num_bands, bands.num_bands)
         self.bases = np.asarray(bases, np.float64).reshape(len(bases), bands.num_bands)
+        reach = np.zeros((bands.num_bands, bands.num_bands), bool)
+        for f, (_, k) in enumerate(self.fluorophores):
+            m = self.bases[k][:, None] * self.emission[f]
+            reach |= (m > 0) & (m >= PAIR_FLOOR * m.max())
+        j, k = np.nonzero(reach)
+        self.pairs = (tuple(int(i) for i in j), tuple(int(i) for i in k))
         gauss_nodes, gauss_weights = gauss_rule(nodes, weights, GAUSS_POINTS)
         self.log_nodes = np.log(gauss_nodes / PowerLawScattering.REFERENCE_NM)
         self.weights = gauss_weights
@@ -195,6 +219,17 @@ class PixelSpectra(eqx.Module):
         else:
             mus = self.value(free, "mus") + jnp.zeros(self.bases.shape[1])
         return mua, mus, g
+
+
+    def conversion(self, free):
+        """M [P] at `pairs`: escaping fluorescence in band k per unit I_jk (`WhiteModel.log_fluorescence`)
+        and unit incident power in band j, summed over the fluorophores: sum_f Y_f s_f,jk mua_f,j."""
+        j, k = (np.asarray(p, np.int32) for p in self.pairs)
+        bases = jnp.asarray(self.bases)
+        m = 0.0
+        for f, (field, b) in enumerate(self.fluorophores):
+            m = m + self.value(free, field) * bases[b][j] * jnp.asarray(self.emission[f][j, k])
+        return m
 
 
 def reference_properties(tissue, parameters, free_values):

@@ -11,7 +11,7 @@ from ._solve import setup
 
 
 @float64
-def model_stack(model, free, values, *, white=None, scale=None, view=1.0) -> np.ndarray:
+def model_stack(model, free, values, *, white=None, scale=None, view=1.0, light=None) -> np.ndarray:
     """The model's stack [bands, H, W]: the top layer of `model` (a SpectralTissue) with the free
     parameters `free` at `values` [P, H, W] (natural units), times `scale` [H, W] (default 1), seen
     at viewing cosine `view`."""
@@ -21,15 +21,13 @@ def model_stack(model, free, values, *, white=None, scale=None, view=1.0) -> np.
     p, height, width = values.shape
     nb = model.bands.num_bands
     dummy = Measurement(np.ones((nb, height, width)), np.ones((nb, height, width)))
-    _, problem, vw = setup(dummy, model, free, white=white, scale=False, view=view)
+    _, problem, vw = setup(dummy, model, free, white=white, scale=False, view=view, light=light)
     if p != len(problem.parameters):
         raise ValueError(f"values has {p} maps for {len(problem.parameters)} free parameters")
     flat = values.reshape(p, -1).T
 
     def one(v, w):
-        mua, mus, g = problem.spectra.properties(v)
-        ly, _ = problem.white.log_reflectance(mua, mus, g, problem.n, w)
-        return jnp.exp(ly)
+        return jnp.exp(problem.predict(v, w)[0])
 
     out = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(flat), jnp.asarray(vw))).T.reshape(nb, height, width)
     return out if scale is None else out * np.asarray(scale, np.float64)

@@ -44,6 +44,9 @@ class RecordSpec(eqx.Module):
     - `volume_all`: record interactions of non-converted photons too (default: converted only).
     - `emission`: record every conversion point as an emission record in the volume buffer
       (default off; the renderer turns it on).
+    - `arrivals`: record interactions (arrival records) in the volume buffer (default on); off
+      with `emission` on keeps the conversion points alone (`tissuefit.maps`' fluorescence tables
+      need where photons converted, not the hundreds of interactions after).
     - `replay`: records carry what replaying them at other parameters needs (`tissuefit.replay`):
       the Henyey–Greenstein score per medium and, for converted photons, the statistics of the
       excitation segment before their conversion (path, hits, score, medium, and its band per band
@@ -55,6 +58,7 @@ class RecordSpec(eqx.Module):
     volume: int = eqx.field(static=True, default=0)
     volume_all: bool = eqx.field(static=True, default=False)
     emission: bool = eqx.field(static=True, default=False)
+    arrivals: bool = eqx.field(static=True, default=True)
     replay: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
@@ -64,7 +68,7 @@ class RecordSpec(eqx.Module):
                 raise ValueError(f"records.{name} = {value!r}; allowed an integer in [0, 2^31 - 1] (buffer capacity, records)")
             if value:
                 check_positive_int(f"records.{name}", value, high=2**31 - 1)
-        for name in ("volume_all", "emission", "replay"):
+        for name in ("volume_all", "emission", "arrivals", "replay"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"records.{name} = {getattr(self, name)!r} must be True or False")
 

@@ -377,7 +377,7 @@ def step(lanes: _Lanes, acc: _Acc, medium: _Medium, tissue, config: SpectralConf
         # the photon as it arrives at the interaction (its weight, spectrum and path statistics)
         arriving = lanes._replace(path=path_in, score=score_in if config.scores else None)
         here = jnp.stack([x, y, _pick(medium.z0, layer) + z], -1)
-        rec = interact & (lanes.converted | config.records.volume_all)
+        rec = interact & (lanes.converted | config.records.volume_all) & config.records.arrivals
         volume = _append(acc.volume, rec, **_record_rows(arriving, here, jnp.stack([lanes.ux, lanes.uy, uz], -1), lanes.band))
         if config.fluorescent and config.records.emission:
             # the photon as it leaves a conversion point: emitted weight (spectrum), fresh path

@@ -1,0 +1,115 @@
+"""The white Monte Carlo fluorescence model (tissuefit/maps/_fluorescence.py) and PpIX maps."""
+
+import math
+
+import jax
+import numpy as np
+import pytest
+
+from tests.maps.conftest import mucosa, pdd_mucosa
+
+
+def _direct(mua_x, mus_x, mua_m, mus_m, mua_f, photons, seed):
+    """Escaping fluorescence of a two-band medium traced directly (pencil beam, analog conversion)."""
+    from tissuefit.scene import (
+        BandGrid,
+        BoxcarSpectrum,
+        ConstantAbsorption,
+        ConstantScattering,
+        Fluorophore,
+        LayerOptics,
+        SpectralScene,
+        SpectralTissue,
+    )
+    from tissuefit.transport import SpectralOptions, trace_spectral
+
+    bands = BandGrid([500.0, 600.0], widths=[100.0, 100.0], response="delta")
+    fl = Fluorophore(name="probe", bands=bands, specific_absorption=[mua_f, 0.0], eem=[[0.0, 1.0], [0.0, 0.0]], d=1.0,
+                     c=1.0, quantum_yield=1.0)
+    optics = LayerOptics((ConstantAbsorption(np.array([mua_x - mua_f, mua_m])), fl), ConstantScattering(np.array([mus_x, mus_m]), 0.9))
+    tissue = SpectralTissue(optics, n=[1.4], thickness=[math.inf], bands=bands)
+    r = trace_spectral(SpectralScene(tissue, spectrum=BoxcarSpectrum(450.0, 550.0)), key=jax.random.key(seed), photons=photons,
+                       spectral=SpectralOptions(mode="per_band"))
+    return float(r.rd[1]), float(r.rd_stderr[1])
+
+
+@pytest.mark.parametrize("mua_x, musr_x, mua_m, r", [(15.0, 30.0, 0.6, 0.55),  # PpIX-like: violet in, red out
+                                                     (1.3, 2.0, 0.12, 0.8)])   # weak scattering, deep excitation
+def test_fluorescence_agrees_with_direct_traces(white_fluorescent, mua_x, musr_x, mua_m, r):
+    """The tabulated I_jk (excitation and emission decoupled at the conversion depth, each scaled in
+    its own mus') against a direct trace of the fluorescence, within 3 combined standard errors."""
+    from tissuefit.maps import view_weights
+
+    mus_x = musr_x / 0.1
+    mus_m = r * mus_x
+    mua_f = 0.1 * mua_x
+    ln_i, rel = white_fluorescent.log_fluorescence(np.array([mua_x, mua_m]), np.array([mus_x, mus_m]), 0.9, 1.4,
+                                                   view_weights(None), ((0,), (1,)))
+    value = mua_f * float(np.exp(ln_i[0]))
+    se = value * float(np.sqrt(rel[0]))
+    d, d_se = _direct(mua_x, mus_x, mua_m, mus_m, mua_f, 100_000, 3)
+    assert 0 < se < 0.1 * value
+    assert abs(value - d) <= 3 * math.hypot(se, d_se), (value, se, d, d_se)
+
+
+def _pdd_stack(white, truth, light, rng):
+    """A model-made stack under `light`, each band exposed to 3000 counts at its peak (Poisson and
+    read noise 2), the exposure divided out: (data, variance)."""
+    from tissuefit.maps import model_stack
+
+    free = list(truth)
+    y0 = model_stack(pdd_mucosa(), free, np.stack(list(truth.values())), white=white, light=light)
+    gain = 3000.0 / y0.max((1, 2))
+    mean = y0 * gain[:, None, None]
+    data = (rng.poisson(mean) + rng.normal(0.0, 2.0, mean.shape)) / gain[:, None, None]
+    return data, (mean + 4.0) / gain[:, None, None] ** 2
+
+
+def test_ppix_map_under_violet_light(white_fluorescent):
+    """A PDD-camera stack (violet light only: the red bands see PpIX and collagen fluorescence alone)
+    mapped back: c_ppix within 3 sigma in every good pixel and within 10 % at the median."""
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import map as map_stack
+    from tissuefit.scene import GaussianSpectrum
+
+    rng = np.random.default_rng(4)
+    tissue = pdd_mucosa()
+    violet = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
+    light = violet / violet.max()
+    shape = (4, 4)
+    truth = {"saturation": rng.uniform(0.5, 0.9, shape), "c_ppix": rng.uniform(0.3, 3.0, shape)}
+    data, var = _pdd_stack(white_fluorescent, truth, light, rng)
+    res = map_stack(Measurement(data, var), tissue, list(truth), white=white_fluorescent, light=light)
+    good = res.flags == 0
+    assert good.sum() >= 14
+    c, s = res["c_ppix"], res.sigma[res.names.index("c_ppix")]
+    assert np.all(np.abs(c - truth["c_ppix"])[good] <= 3 * s[good])
+    assert np.median(np.abs(c / truth["c_ppix"] - 1)[good]) < 0.10
+    assert res.settings["fluorophores"] == ["c_collagen", "c_ppix"]
+
+
+def test_fluorophores_need_fluorescence_tables(white):
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import map as map_stack
+
+    nb = pdd_mucosa().bands.num_bands
+    m = Measurement(np.ones((nb, 2, 2)), np.ones((nb, 2, 2)))
+    with pytest.raises(ValueError, match="fluorescence tables"):
+        map_stack(m, pdd_mucosa(), ["c_ppix"], white=white)
+    with pytest.raises(ValueError, match="light has shape"):
+        map_stack(m, mucosa(), ["saturation"], white=white, light=np.ones(3))
+
+
+def test_cli_light_option():
+    from tissuefit.cli._map import parse_light
+    from tissuefit.scene import BandGrid
+
+    bands = BandGrid()
+    assert parse_light("white", bands) is None
+    violet = parse_light("violet", bands)
+    assert violet.shape == (21,) and violet.max() == 1.0 and np.argmax(violet) == 0 and violet[-1] < 1e-6
+    assert np.allclose(parse_light(",".join(["0.5"] * 21), bands), 0.5)
+    with pytest.raises(ValueError, match="--light has 2 numbers"):
+        parse_light("1,2", bands)
+    with pytest.raises(ValueError, match="allowed white, violet"):
+        parse_light("blue", bands)
