@@ -415,3 +415,8 @@ def test_emission_records_sum_to_the_emitted_fluorescence(key, mode):
     arrivals = vol.select(~vol.emission)
     assert arrivals.count == plain.volume_records.count and not plain.volume_records.emission.any()
     np.testing.assert_allclose(arrivals.power, plain.volume_records.power, rtol=1e-6, atol=1e-15)
+    # and without arrivals the emission records alone, the same as with them
+    alone = tf.trace_spectral(scene, key=key, photons=5_000, spectral=tf.SpectralOptions(mode=mode),
+                              records=tf.RecordSpec(volume=400_000, emission=True, arrivals=False)).volume_records
+    assert alone.count == em.count and alone.emission[: alone.count].all()
+    np.testing.assert_allclose(alone.valid().power, em.power, rtol=1e-6, atol=1e-15)
