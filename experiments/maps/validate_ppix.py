@@ -12,7 +12,7 @@ the exposure divided out; residual variance = camera noise + the render's own va
 Free per pixel: c_ppix, saturation and the scale (blood fraction, a, b known), light = the LED's
 band powers. Reported: median relative error of c_ppix and the fraction within 2 sigma, in the
 lesion and the mucosa, >= 0.1 cm from the lesion's edge and near it. Writes
-results_validate_ppix_<width>px.json and validate_ppix_<width>px.png.
+results_validate_ppix_<width>px[_homogeneous].json and validate_ppix_<width>px[_homogeneous].png.
 
     PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16]
 """
@@ -51,6 +51,8 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=1_000_000)
     ap.add_argument("--width", type=int, default=16)
     ap.add_argument("--peak-counts", type=float, default=3000.0)
+    ap.add_argument("--homogeneous", action="store_true",
+                    help="no lesion: c_ppix = 3 everywhere (where the local model's assumption holds)")
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
@@ -62,8 +64,12 @@ def main() -> None:
     from validate import pixel_geometry  # experiments/maps/validate.py
 
     x0, x1, y0, y1 = LESION
-    tissue = SpectralTissue(optics(C_MUCOSA), n=[1.4], thickness=[math.inf],
-                            regions=[Box((x0, y0, 0.0), (x1, y1, 2.0), optics=optics(C_LESION))])
+    if args.homogeneous:
+        x0, x1, y0, y1 = -10.0, 10.0, -10.0, 10.0  # the "lesion" covers the field
+        tissue = SpectralTissue(optics(C_LESION), n=[1.4], thickness=[math.inf])
+    else:
+        tissue = SpectralTissue(optics(C_MUCOSA), n=[1.4], thickness=[math.inf],
+                                regions=[Box((x0, y0, 0.0), (x1, y1, 2.0), optics=optics(C_LESION))])
     led = GaussianSpectrum(405.0, 20.0)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
@@ -104,12 +110,28 @@ def main() -> None:
                     saturation_median=float(np.median(res["blood_saturation"][sel])))
 
     far = edge >= 0.1
+
+    def region(sel):
+        """The region's pixels averaged (data and render variance / pixel count) and fitted as one
+        spectrum: what the model says where the per-pixel noise is averaged away."""
+        sel = sel & good
+        if not sel.any():
+            return None
+        k = int(sel.sum())
+        d = data[:, sel].mean(1)[:, None, None]
+        v = var[:, sel].mean(1)[:, None, None] / k
+        one = map_stack(Measurement(d, v), model_tissue, ["saturation", "c_ppix"], white=white, view=float(np.median(cosv[sel])),
+                        light=light)
+        return dict(pixels=k, c=float(one["c_ppix"][0, 0]), c_sigma=float(one.sigma[one.names.index("c_ppix")][0, 0]),
+                    saturation=float(one["blood_saturation"][0, 0]), reduced_chi2=float(one.reduced_chi2[0, 0]))
+
     out = dict(machine=machine(), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
                map_seconds=res.seconds, flagged=int((~good).sum()), c_lesion=C_LESION, c_mucosa=C_MUCOSA,
                lesion_far=stats(inside & far), mucosa_far=stats(~inside & far), near_edge=stats(~far),
-               median_red_snr=float(np.median(raw[13:] / np.sqrt(np.maximum(rvar[13:], 1e-300)))))
+               median_red_snr=float(np.median(raw[13:] / np.sqrt(np.maximum(rvar[13:], 1e-300)))),
+               region_average=dict(lesion=region(inside & far), mucosa=region(~inside & far)))
     print(json.dumps(out, indent=2))
-    tag = f"{args.width}px"
+    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "")
     (HERE / f"results_validate_ppix_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
     import matplotlib
 

@@ -128,6 +128,10 @@ GN_STEPS = 12
 Measured on 64 x 64 model-made pixels from the candidate search's start: Gauss-Newton converged in
 a median 6 steps (at most 10) on all but 3 of 4096; Levenberg-Marquardt took 13-28 (at most 35), and
 a vmapped loop runs until its slowest pixel stops, so Gauss-Newton first made the map 3-5x faster."""
+FLUORESCENT_CHUNK = 256
+"""Pixels per vmapped solve at most when the model has fluorescence: its evaluation holds ~140 band
+pairs x 66 depth bins per pixel and tangent (measured: a 4096-pixel chunk took 18.5 GB and was
+killed on the 24 GB machine)."""
 LM_CHUNK = 32
 """Pixels per vmapped Levenberg-Marquardt solve (the few pixels Gauss-Newton did not converge on)."""
 CANDIDATES = 128
@@ -293,7 +297,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
       camera's violet light with red bands dark gives light [1, ..., 0, ...].
     - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
       neighbours' mean (None: independent pixels); `passes` solves when it is on.
-    - `chunk`: pixels per vmapped solve (memory); `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
+    - `chunk`: pixels per vmapped solve (memory; at most `FLUORESCENT_CHUNK` with fluorophores);
+      `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
     Returns a `MapResult`.
     """
     t0 = time.perf_counter()
@@ -311,6 +316,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     use = np.ascontiguousarray(m.mask.reshape(nb, -1).T)
     var = np.ascontiguousarray(np.where(use, m.variance.reshape(nb, -1).T, 1.0))
     y = np.where(use, y, 0.0)
+    if problem.spectra.fluorophores:  # the fluorescence model's band pairs x depth bins per pixel
+        chunk = min(chunk, FLUORESCENT_CHUNK)
     chunk = int(max(1, min(chunk, npx)))
     t_init = time.perf_counter()
     x0 = _initial(problem, model, y, var, use, vw, max(chunk, 4096))
