@@ -52,6 +52,15 @@ def test_wrong_band_count_is_one_line(tmp_path, capsys):
     assert status == 2 and err.count("\n") == 1 and "3 bands; the model's band grid has 21" in err
 
 
+def test_one_light_per_stack(tmp_path, capsys, white):
+    measured, _ = _measured(tmp_path, white, 2, 2)
+    status = main(["map", str(measured), str(measured), "--scene", FIT_DEMO, "--free", "blood_fraction", "--light", "violet",
+                   "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1
+    assert "--light is given 1 time(s) for 2 MEASURED stack(s)" in err
+
+
 @pytest.mark.slow
 def test_map_end_to_end(tmp_path, capsys, white):
     measured, truth = _measured(tmp_path, white)
@@ -65,3 +74,19 @@ def test_map_end_to_end(tmp_path, capsys, white):
     assert doc["summary"]["free"] == ["blood_fraction", "saturation"]
     assert np.median(np.abs(layers[0] / truth[0] - 1)) < 0.15
     assert (tmp_path / "out" / "maps.png").exists() and (tmp_path / "out" / "summary.json").exists()
+
+
+@pytest.mark.slow
+def test_two_stacks_end_to_end(tmp_path, capsys, white):
+    """Two stacks of one field (here the same white-light stack twice): one scale per stack."""
+    measured, truth = _measured(tmp_path, white)
+    status = main(["map", str(measured), str(measured), "--light", "white", "--light", "white", "--scene", FIT_DEMO,
+                   "--free", "blood_fraction,saturation", "--out", str(tmp_path / "out"), "--model-photons", "4000",
+                   "--model-seed", "5", "--no-register"])
+    out = capsys.readouterr().out
+    assert status == 0, out
+    doc, layers = read_maps(tmp_path / "out" / "maps.json")
+    assert [x["name"] for x in doc["layers"][:4]] == ["blood_fraction", "blood_saturation", "scale_0", "scale_1"]
+    assert doc["summary"]["light"] == ["white", "white"]
+    assert np.allclose(layers[2], layers[3], rtol=1e-6)
+    assert np.median(np.abs(layers[0] / truth[0] - 1)) < 0.15

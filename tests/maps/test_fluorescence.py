@@ -113,3 +113,50 @@ def test_cli_light_option():
         parse_light("1,2", bands)
     with pytest.raises(ValueError, match="allowed white, violet"):
         parse_light("blue", bands)
+
+
+def test_white_and_violet_stacks_map_jointly(white_fluorescent):
+    """A white-light stack and a violet PDD stack of one field (different exposures), mapped jointly:
+    blood fraction, saturation and c_ppix within 3 sigma, each stack's scale recovered, and blood
+    fraction better determined than from the violet stack alone."""
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import map as map_stack
+    from tissuefit.scene import GaussianSpectrum
+
+    rng = np.random.default_rng(6)
+    tissue = pdd_mucosa()
+    violet = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
+    violet = violet / violet.max()
+    shape = (3, 3)
+    truth = {"blood_fraction": rng.uniform(0.01, 0.04, shape), "saturation": rng.uniform(0.5, 0.9, shape),
+             "c_ppix": rng.uniform(0.5, 3.0, shape)}
+    white_data, white_var = _pdd_stack(white_fluorescent, truth, None, rng)
+    pdd_data, pdd_var = _pdd_stack(white_fluorescent, truth, violet, rng)
+    gain = 0.37  # the violet stack's exposure against the white one's
+    stacks = [Measurement(white_data, white_var), Measurement(gain * pdd_data, gain**2 * pdd_var)]
+    res = map_stack(stacks, tissue, list(truth), white=white_fluorescent, light=[None, violet])
+    assert res.names == ("blood_fraction", "blood_saturation", "c_ppix", "scale_0", "scale_1")
+    good = res.flags == 0
+    assert good.sum() >= 8
+    for i, want in enumerate([*truth.values(), np.ones(shape), np.full(shape, gain)]):
+        assert np.all(np.abs(res.values[i] - want)[good] <= 3 * res.sigma[i][good]), res.names[i]
+    alone = map_stack(stacks[1], tissue, list(truth), white=white_fluorescent, light=violet)
+    both = good & (alone.flags == 0)
+    assert np.median(res.sigma[0][both]) < 0.5 * np.median(alone.sigma[0][both])
+    assert res.settings["stacks"] == 2 and len(res.settings["light"]) == 2
+
+
+def test_joint_stacks_are_checked(white):
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import map as map_stack
+
+    nb = mucosa().bands.num_bands
+    m = Measurement(np.ones((nb, 2, 2)), np.ones((nb, 2, 2)))
+    with pytest.raises(ValueError, match="light has 1 entries for 2 measured stacks"):
+        map_stack([m, m], mucosa(), ["saturation"], white=white, light=[None])
+    with pytest.raises(ValueError, match=r"measured\[1\] has 3 x 2 pixels"):
+        map_stack([m, Measurement(np.ones((nb, 3, 2)), np.ones((nb, 3, 2)))], mucosa(), ["saturation"], white=white)
+    with pytest.raises(ValueError, match=r"light\[1\] has shape"):
+        map_stack([m, m], mucosa(), ["saturation"], white=white, light=[None, np.ones(3)])
+    with pytest.raises(ValueError, match="empty sequence"):
+        map_stack([], mucosa(), ["saturation"], white=white)

@@ -287,9 +287,12 @@ def _map_parser(commands) -> None:
                     "standard errors, residual RMS, reduced chi2, flags; data_spec/maps.md), DIR/summary.json and "
                     "DIR/maps.png. Flagged pixels (not converged, at a bound, singular, masked) are kept and marked, "
                     "never filled. Only the ratio of absorption to reduced scattering is seen by a wide-field "
-                    "reflectance: fit blood_fraction or a, not both.")
-    mp.add_argument("measured", metavar="MEASURED",
-                    help="measured stack: a sidecar (.json or .tif), a folder of band images, or an ENVI header (.hdr)")
+                    "reflectance: fit blood_fraction or a, not both. Several MEASURED stacks of one field under "
+                    "different lights (e.g. a white-light and a violet PDD stack) are fitted jointly, each with its "
+                    "own --light and its own per-pixel scale.")
+    mp.add_argument("measured", metavar="MEASURED", nargs="+",
+                    help="measured stack: a sidecar (.json or .tif), a folder of band images, or an ENVI header (.hdr); "
+                         "several: stacks of the same field and pixel grid under different lights")
     mp.add_argument("--scene", metavar="SCENE", required=True,
                     help="spectral scene file (.toml): the top layer's spectral models, g, n and the initial guess")
     mp.add_argument("--free", metavar="NAME[,NAME...]", required=True,
@@ -302,11 +305,12 @@ def _map_parser(commands) -> None:
                     help="cosine of the viewing angle against the surface normal (default 1: straight down)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
                     help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
-    mp.add_argument("--light", metavar="white|violet|P1,P2,...", default="white",
+    mp.add_argument("--light", metavar="white|violet|P1,P2,...", action="append",
                     help="the illumination per band in the stack's units: white (default: 1 in every band, or a stack "
                          "divided by a white reference), violet (a PDD camera's 405 nm LED, 20 nm FWHM, peak band 1, "
                          "no other light: the red bands see fluorescence alone), or one number per band. Fluorescence "
-                         "excited in band j scales with its value in j")
+                         "excited in band j scales with its value in j. With several MEASURED stacks, give it once "
+                         "per stack, in their order")
     mp.add_argument("--chunk", type=int, metavar="P", default=256, help="pixels per vmapped solve (default 256)")
     mp.add_argument("--model-photons", type=int, metavar="N", default=50000,
                     help="photons of the white Monte Carlo trace (default 50000)")

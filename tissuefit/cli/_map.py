@@ -1,4 +1,4 @@
-"""`tissuefit map MEASURED --scene SCENE --free NAME,... --out DIR`: per-pixel parameter maps."""
+"""`tissuefit map MEASURED [MEASURED ...] --scene SCENE --free NAME,... --out DIR`: per-pixel parameter maps."""
 
 from __future__ import annotations
 
@@ -48,13 +48,21 @@ def run(args) -> int:
 
         tissue = initial_values(tissue, args.init)
         free_parameters(tissue, free)  # names checked before the model is built or the stack read
-        measured = io.read_measured(args.measured)
-        measured = io.prepare_measured(measured, register=not args.no_register)
-        measurement = io.measurement(measured)
-        if measurement.shape[0] != tissue.bands.num_bands:  # before the model is built
-            raise ValueError(f"measured has {measurement.shape[0]} bands; the model's band grid has "
-                             f"{tissue.bands.num_bands} ({args.scene})")
-        light = parse_light(args.light, tissue.bands)
+        names = args.light or ["white"] * len(args.measured)
+        if len(names) != len(args.measured):
+            raise ValueError(f"--light is given {len(names)} time(s) for {len(args.measured)} MEASURED stack(s); "
+                             "give it once per stack, in their order (or not at all: white light for every stack)")
+        lights = [parse_light(name, tissue.bands) for name in names]
+        stacks, measurements = [], []
+        for path in args.measured:
+            stack = io.prepare_measured(io.read_measured(path), register=not args.no_register)
+            measurement = io.measurement(stack)
+            if measurement.shape[0] != tissue.bands.num_bands:  # before the model is built
+                raise ValueError(f"{path} has {measurement.shape[0]} bands; the model's band grid has "
+                                 f"{tissue.bands.num_bands} ({args.scene})")
+            stacks.append(stack)
+            measurements.append(measurement)
+        measured, light = (measurements[0], lights[0]) if len(measurements) == 1 else (measurements, lights)
         white = model_for_tissue(tissue, photons=args.model_photons, seed=args.model_seed, progress=None if args.json else
                                  (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
 
@@ -63,12 +71,15 @@ def run(args) -> int:
             if not args.json:
                 print(f"  {done}/{total} pixels", file=sys.stderr, flush=True)
 
-        result = map_stack(measurement, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos, light=light,
+        result = map_stack(measured, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos, light=light,
                            smoothness=args.smoothness, chunk=args.chunk, progress=progress)
     except ValueError as err:
-        raise InvalidInput(f"{args.measured}: {err}") from None
-    extra = {"scene_file": str(args.scene), "measured": str(args.measured), "free": free, "init": args.init, "light": args.light,
-             "units": measured.units, "preparation": {k: measured.report.get(k) for k in ("dead_bands", "registration")}}
+        raise InvalidInput(f"{', '.join(args.measured)}: {err}") from None
+    one = len(stacks) == 1
+    preparation = [{k: s.report.get(k) for k in ("dead_bands", "registration")} for s in stacks]
+    extra = {"scene_file": str(args.scene), "measured": args.measured[0] if one else args.measured, "free": free,
+             "init": args.init, "light": names[0] if one else names, "units": stacks[0].units if one else [s.units for s in stacks],
+             "preparation": preparation[0] if one else preparation}
     files = io.write_maps(out, result, extra=extra)
     args.partial.files += files
     summary = result.summary()

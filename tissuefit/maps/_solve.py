@@ -24,6 +24,7 @@ against).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import equinox as eqx
@@ -52,40 +53,44 @@ class Problem(eqx.Module):
     n: float = eqx.field(static=True)
     scale: bool = eqx.field(static=True)
     light: np.ndarray | None = None
-    """[bands] the illumination's power per band in the stack's units (None: 1 in every band)."""
+    """[stacks, bands] the illumination's power per band of each stack, in its units (None: one
+    stack, 1 in every band)."""
+    stacks: int = eqx.field(static=True, default=1)
+    """Stacks fitted jointly (each with its light and, when `scale`, its own per-pixel scale)."""
 
     def values(self, x):
         vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
         return jnp.stack(vals)
 
     def model(self, x, view):
-        """(ln y [bands], relative variance [bands]) at unconstrained x (scale excluded): the
-        reflectance, and with fluorophores in the layer their escaping fluorescence,
-        y_k = P_k rho_k + sum_j P_j M_jk I_jk (P the light per band, M `PixelSpectra.conversion`)."""
+        """(ln y [stacks * bands], relative variance [stacks * bands]) at unconstrained x (scales
+        excluded): the reflectance, and with fluorophores in the layer their escaping fluorescence,
+        y_sk = P_sk rho_k + sum_j P_sj M_jk I_jk (P_s the light per band of stack s, M
+        `PixelSpectra.conversion`), stack after stack."""
         return self.predict(self.values(x), view)
 
     def predict(self, free, view):
         """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
         ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
+        light = jnp.ones((self.stacks, mua.shape[0])) if self.light is None else jnp.asarray(self.light)
         if not self.spectra.fluorophores:
-            return (ly, rel) if self.light is None else (ly + jnp.log(jnp.asarray(self.light)), rel)
-        light = jnp.ones(mua.shape) if self.light is None else jnp.asarray(self.light)
+            return (ly + jnp.log(light)).reshape(-1), jnp.broadcast_to(rel, light.shape).reshape(-1)
         pairs = self.spectra.pairs
         j, k = (np.asarray(p, np.int32) for p in pairs)
         into = jnp.asarray(np.eye(mua.shape[0])[k])  # [P, bands]: pair p lands in band k_p
         ln_i, rel_i = self.white.log_fluorescence(mua, mus, g, self.n, view, pairs)
-        terms = light[j] * self.spectra.conversion(free) * jnp.exp(ln_i)  # [P]
+        terms = light[:, j] * (self.spectra.conversion(free) * jnp.exp(ln_i))  # [stacks, P]
         rho = light * jnp.exp(ly)
         total = rho + terms @ into
         var = rho**2 * rel + (terms**2 * rel_i) @ into
         safe = jnp.maximum(total, TINY)
-        return jnp.log(safe), var / safe**2
+        return jnp.log(safe).reshape(-1), (var / safe**2).reshape(-1)
 
     def residual(self, x, args):
         y, var, use, view, prior_mean, prior_w = args
         ly, rel = self.model(x, view)
-        log_s = x[-1] if self.scale else 0.0
+        log_s = jnp.repeat(x[x.size - self.stacks:], y.size // self.stacks) if self.scale else 0.0
         pred = jnp.exp(log_s + ly)
         sigma2 = var + jax.lax.stop_gradient(pred**2 * rel)
         r = jnp.where(use, (pred - y) / jnp.sqrt(jnp.where(use, sigma2, 1.0)), 0.0)
@@ -104,9 +109,11 @@ def _solve_one(problem: Problem, x0, args, method: str, max_steps: int, rtol: fl
     cov = jnp.linalg.inv(jtj)
     dv = jax.jacfwd(lambda z: problem.values(z))(x)  # [P_free, P]
     nat = problem.values(x)
-    if problem.scale:
-        nat = jnp.concatenate([nat, jnp.exp(x[-1:])])
-        dv = jnp.concatenate([dv, jnp.zeros((1, x.size)).at[0, -1].set(jnp.exp(x[-1]))])
+    if problem.scale:  # the last `stacks` coordinates are the log scales
+        s = problem.stacks
+        scales = jnp.exp(x[x.size - s:])
+        nat = jnp.concatenate([nat, scales])
+        dv = jnp.concatenate([dv, jnp.zeros((s, x.size)).at[:, x.size - s:].set(jnp.diag(scales))])
     sd = jnp.sqrt(jnp.maximum(jnp.einsum("ij,jk,ik->i", dv, cov, dv), 0.0))
     y, use = args[0], args[2]
     chi2 = jnp.sum(r[: y.size] ** 2)
@@ -148,18 +155,20 @@ def _candidate_table(problem: Problem, xs):
     return jax.vmap(lambda x: jax.vmap(lambda v: jnp.exp(problem.model(x, v)[0]))(eye))(xs)
 
 
-@jax.jit
-def _best_candidate(rho, y, w):
-    """Per pixel the candidate of least chi^2 (with its least-squares scale when the scale is free);
-    `rho` [K, bands] the candidates' model values."""
-    rho = rho[None]
-    wy = (w * y)[:, None, :]
-    a = jnp.sum(wy * rho, -1)
-    b = jnp.sum(w[:, None, :] * rho * rho, -1)
-    chi2_scaled = jnp.sum(w * y * y, -1)[:, None] - a * a / jnp.maximum(b, 1e-300)
+@functools.partial(jax.jit, static_argnames="stacks")
+def _best_candidate(rho, y, w, *, stacks: int):
+    """Per pixel the candidate of least chi^2 (with its least-squares scale per stack when the scale
+    is free): (candidate [N], scales [N, stacks], candidate without scales [N]); `rho` [K, stacks *
+    bands] the candidates' model values, `y`, `w` [N, stacks * bands]."""
+    rho = rho.reshape(1, rho.shape[0], stacks, -1)  # [1, K, S, B]
+    y = y.reshape(y.shape[0], 1, stacks, -1)
+    w = w.reshape(w.shape[0], 1, stacks, -1)
+    a = jnp.sum(w * y * rho, -1)  # [N, K, S]
+    b = jnp.sum(w * rho * rho, -1)
+    chi2_scaled = jnp.sum(jnp.sum(w * y * y, -1) - a * a / jnp.maximum(b, 1e-300), -1)  # [N, K]
     k = jnp.argmin(chi2_scaled, axis=1)
-    scale = jnp.take_along_axis(a / jnp.maximum(b, 1e-300), k[:, None], 1)[:, 0]
-    chi2_plain = jnp.sum(w[:, None, :] * (rho - y[:, None, :]) ** 2, -1)
+    scale = jnp.take_along_axis(a / jnp.maximum(b, 1e-300), k[:, None, None], 1)[:, 0]  # [N, S]
+    chi2_plain = jnp.sum(w * (rho - y) ** 2, (-2, -1))
     return k, scale, jnp.argmin(chi2_plain, axis=1)
 
 
@@ -178,17 +187,18 @@ def _initial(problem: Problem, tissue, y, var, use, view, chunk: int) -> np.ndar
     # the candidates seen from the map's mean viewing direction (the start need not be exact)
     rho = jnp.einsum("v,kvb->kb", jnp.asarray(view.mean(0)), _candidate_table(problem, jnp.asarray(xs)))
     w = np.where(use, 1.0 / np.where(var > 0, var, np.inf), 0.0)
-    best, scale = np.zeros(y.shape[0], np.int64), np.ones(y.shape[0])
+    best, scale = np.zeros(y.shape[0], np.int64), np.ones((y.shape[0], problem.stacks))
     for lo in range(0, y.shape[0], chunk):
         sl = slice(lo, lo + chunk)
-        k_scaled, s, k_plain = (np.asarray(a) for a in _best_candidate(rho, jnp.asarray(y[sl]), jnp.asarray(w[sl])))
+        k_scaled, s, k_plain = (np.asarray(a) for a in _best_candidate(rho, jnp.asarray(y[sl]), jnp.asarray(w[sl]),
+                                                                      stacks=problem.stacks))
         best[sl], scale[sl] = (k_scaled, s) if problem.scale else (k_plain, 1.0)
     x = xs[best]
     if not problem.scale:
         return x
     good = scale > 0
-    fallback = float(np.median(scale[good])) if good.any() else 1.0
-    return np.concatenate([x, np.log(np.where(good, scale, fallback))[:, None]], 1)
+    fallback = np.array([np.median(scale[good[:, i], i]) if good[:, i].any() else 1.0 for i in range(problem.stacks)])
+    return np.concatenate([x, np.log(np.where(good, scale, fallback))], 1)
 
 
 def _neighbour_mean(x: np.ndarray, height: int, width: int, good: np.ndarray) -> np.ndarray:
@@ -231,20 +241,58 @@ def _as_measurement(measured):
                     "(tissuefit.io.measurement(stack) builds one from a prepared measured stack)")
 
 
+def _stacks(measured, light, nb: int, wavelengths):
+    """(Measurement of the stacks one after another along the band axis, lights [stacks, bands] or
+    None) from one Measurement and its light or a sequence of each; checks them."""
+    from ..fit import Measurement
+
+    several = isinstance(measured, (list, tuple))
+    ms = [_as_measurement(m) for m in measured] if several else [_as_measurement(measured)]
+    if not ms:
+        raise ValueError("measured is an empty sequence; allowed a Measurement or a list of them (one per light)")
+    if not several:
+        lights = [light]
+    elif light is None:
+        lights = [None] * len(ms)
+    elif len(light) != len(ms):
+        raise ValueError(f"light has {len(light)} entries for {len(ms)} measured stacks; give one per stack "
+                         "(None: white light)")
+    else:
+        lights = list(light)
+    for i, (m, li) in enumerate(zip(ms, lights)):
+        what = "measured" if not several else f"measured[{i}]"
+        if m.shape[0] != nb:
+            raise ValueError(f"{what} has {m.shape[0]} bands; the model's band grid has {nb}")
+        if m.shape[1:] != ms[0].shape[1:]:
+            raise ValueError(f"{what} has {m.shape[1]} x {m.shape[2]} pixels; measured[0] has "
+                             f"{ms[0].shape[1]} x {ms[0].shape[2]} (stacks of one field, registered to one grid)")
+        if m.wavelengths is not None and not np.allclose(m.wavelengths, wavelengths, atol=1e-6):
+            raise ValueError(f"{what} wavelengths {m.wavelengths.tolist()} nm differ from the model's band centres "
+                             f"{wavelengths.tolist()} nm")
+        if li is not None:
+            field = "light" if not several else f"light[{i}]"
+            li = np.asarray(li, np.float64)
+            if li.shape != (nb,):
+                raise ValueError(f"{field} has shape {li.shape}; expected ({nb},): the illumination's power per band")
+            check_range(field, li, unit="stack units per band", low=0.0)
+            lights[i] = li
+    if len(ms) == 1:
+        return ms[0], (None if lights[0] is None else lights[0][None])
+    joined = Measurement(np.concatenate([m.data for m in ms]), np.concatenate([m.variance for m in ms]),
+                         np.concatenate([m.mask for m in ms]))
+    return joined, np.stack([np.ones(nb) if li is None else li for li in lights])
+
+
 def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None):
-    """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs."""
+    """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs. Several stacks
+    are joined along the band axis (`_stacks`)."""
     from ..scene import SpectralTissue
 
-    m = _as_measurement(measured)
     if not isinstance(model, SpectralTissue):
         raise TypeError(f"model is a {type(model).__name__}; allowed a SpectralTissue (its top layer's spectral "
                         "models and values: the per-pixel model and the initial guess)")
     nb = model.bands.num_bands
-    if m.shape[0] != nb:
-        raise ValueError(f"measured has {m.shape[0]} bands; the model's band grid has {nb}")
-    if m.wavelengths is not None and not np.allclose(m.wavelengths, model.bands.wavelengths, atol=1e-6):
-        raise ValueError(f"measured wavelengths {m.wavelengths.tolist()} nm differ from the model's band centres "
-                         f"{model.bands.wavelengths.tolist()} nm")
+    m, lights = _stacks(measured, light, nb, np.asarray(model.bands.wavelengths))
     thickness = np.asarray(model.geometry.thickness, np.float64).reshape(-1)
     if model.num_layers != 1 or np.isfinite(thickness[0]):
         raise ValueError(f"model has {model.num_layers} layer(s), the top {thickness[0]:g} cm thick; the white Monte Carlo "
@@ -257,16 +305,12 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None
     white = model_for_tissue(model) if white is None else white
     if not isinstance(white, WhiteModel):
         raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
-    spectra = PixelSpectra(model, parameters)
+    spectra = PixelSpectra(model, parameters, lights)
     if spectra.fluorophores and not white.fluorescent:
         raise ValueError("model's top layer has a fluorophore but white was built without fluorescence tables; "
                          "build it with tissuefit.maps.build_model(..., fluorescence=True) or model_for_tissue(model)")
-    if light is not None:
-        light = np.asarray(light, np.float64)
-        if light.shape != (nb,):
-            raise ValueError(f"light has shape {light.shape}; expected ({nb},): the illumination's power per band")
-        check_range("light", light, unit="stack units per band", low=0.0)
-    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale), light)
+    stacks = m.shape[0] // nb
+    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale), lights, stacks)
     _, height, width = m.shape
     cos = np.broadcast_to(np.asarray(view, np.float64), (height, width)) if view is not None else None
     vw = (view_weights(cos, white.cos_edges).reshape(height * width, -1) if cos is not None
@@ -281,7 +325,10 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     """Per-pixel parameter maps of a measured stack (module docstring).
 
     - `measured`: a `tissuefit.fit.Measurement` (data, noise variance, mask [bands, H, W];
-      `tissuefit.io.measurement` builds one from a prepared measured stack with a noise model).
+      `tissuefit.io.measurement` builds one from a prepared measured stack with a noise model), or
+      a list of them: stacks of one field on one pixel grid under different lights (e.g. a
+      white-light and a violet PDD stack), fitted jointly: shared tissue parameters, one per-pixel
+      scale per stack (`scale_0`, `scale_1`, ...), `light` one entry per stack.
     - `model`: a `SpectralTissue`: its top layer's spectral models are the per-pixel model, their
       values the initial guess and the values of everything not free; g and n its white Monte
       Carlo node.
@@ -294,7 +341,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     - `light`: [bands] the illumination's power per band in the stack's units (default 1 in every
       band: a white light, or a stack divided by a white reference). Fluorescence excited in band
       j and seen in band k scales with light[j], the reflectance in band k with light[k]: a PDD
-      camera's violet light with red bands dark gives light [1, ..., 0, ...].
+      camera's violet light with red bands dark gives light [1, ..., 0, ...]. With several stacks a
+      list, one entry per stack (None: white).
     - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
       neighbours' mean (None: independent pixels); `passes` solves when it is on.
     - `chunk`: pixels per vmapped solve (memory; at most `FLUORESCENT_CHUNK` with fluorophores);
@@ -350,13 +398,14 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
         lm_pixels = int(retry.size)
         flags = np.zeros(npx, np.uint8)
         flags[~ok] |= FLAG_SOLVER
-        squashed = np.array([p._squashed() for p in problem.parameters] + ([False] if scale else []))
+        squashed = np.array([p._squashed() for p in problem.parameters] + ([False] * problem.stacks if scale else []))
         flags[np.any(squashed & (np.abs(x) > 20.0), 1)] |= FLAG_BOUND
         flags[~finite | ~np.all(np.isfinite(nat), 1) | ~np.all(np.isfinite(sd), 1)] |= FLAG_SINGULAR
         flags[nuse <= nx] |= FLAG_MASKED
         x0 = x
-    names = [p.name.split(".", 1)[1] for p in problem.parameters] + (["scale"] if scale else [])
-    units = [p.units for p in problem.parameters] + (["(measured units)"] if scale else [])
+    scales = ["scale"] if problem.stacks == 1 else [f"scale_{i}" for i in range(problem.stacks)]
+    names = [p.name.split(".", 1)[1] for p in problem.parameters] + (scales if scale else [])
+    units = [p.units for p in problem.parameters] + (["(measured units)"] * len(scales) if scale else [])
     dof = np.maximum(nuse - nx, 1)
     return MapResult(names=tuple(names), units=tuple(units),
                      values=nat.T.reshape(nx, height, width), sigma=sd.T.reshape(nx, height, width),
@@ -371,7 +420,9 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
                                               photons=problem.white.photons, a_floor=problem.white.a_floor,
                                               seed=problem.white.seed, fluorescence_photons=problem.white.fl_photons),
                                    fluorophores=[f for f, _ in problem.spectra.fluorophores],
-                                   light=None if light is None else np.asarray(light, np.float64).tolist()))
+                                   stacks=problem.stacks,
+                                   light=None if problem.light is None else
+                                   (problem.light[0] if problem.stacks == 1 else problem.light).tolist()))
 
 
 @float64

@@ -111,12 +111,15 @@ class PixelSpectra(eqx.Module):
     """((excitation j, ...), (emission k, ...)): the band pairs some fluorophore converts between:
     those whose mua_f,j Y s_jk at c = 1 is at least `PAIR_FLOOR` of the fluorophore's largest (the
     model EEMs' Gaussian tails reach every pair; on collagen and PpIX the pairs left out carry 6e-5
-    of the converted light)."""
+    of the converted light); with a `light`, the floor applies to light_j mua_f,j Y s_jk."""
     log_nodes: np.ndarray
     weights: np.ndarray
     scattering: str = eqx.field(static=True)
 
-    def __init__(self, tissue, parameters):
+    def __init__(self, tissue, parameters, light=None):
+        """`light` [bands] or [stacks, bands] (optional): the illumination per band (of each stack);
+        pairs that no light excites at `PAIR_FLOOR` of a fluorophore's strongest pair or more are not
+        evaluated (a violet PDD light leaves the pairs excited near 405 nm)."""
         optics = tissue.layers[0]
         if optics.override is not None:
             raise ValueError("per-pixel maps: layer 0 has a BandOverride; the per-pixel model covers Blood, "
@@ -188,7 +191,9 @@ class PixelSpectra(eqx.Module):
         reach = np.zeros((bands.num_bands, bands.num_bands), bool)
         for f, (_, k) in enumerate(self.fluorophores):
             m = self.bases[k][:, None] * self.emission[f]
-            reach |= (m > 0) & (m >= PAIR_FLOOR * m.max())
+            for lit in [None] if light is None else np.atleast_2d(np.asarray(light, np.float64)):
+                ml = m if lit is None else lit[:, None] * m
+                reach |= (ml > 0) & (ml >= PAIR_FLOOR * ml.max())
         j, k = np.nonzero(reach)
         self.pairs = (tuple(int(i) for i in j), tuple(int(i) for i in k))
         gauss_nodes, gauss_weights = gauss_rule(nodes, weights, GAUSS_POINTS)
