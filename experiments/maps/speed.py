@@ -4,9 +4,10 @@ blood_fraction, saturation, b and the scale, once to compile and once timed. The
 does not change the solve's cost (same table shapes), so a small model is used.
 `--ppix`: the mucosa with collagen and PpIX under a PDD camera's violet LED (light = its band
 powers, each band exposed to its own peak), free saturation, c_ppix and the scale; the model with
-its fluorescence tables (results_speed_<N>_ppix.json).
+its fluorescence tables (results_speed_<N>_ppix.json); with `--white-light` the same under a white light
+(every band pair evaluated; results_speed_<N>_ppix_white.json).
 
-    PYTHONPATH=. python experiments/maps/speed.py [--size 512] [--chunk 4096] [--ppix]
+    PYTHONPATH=. python experiments/maps/speed.py [--size 512] [--chunk 4096] [--ppix [--white-light]]
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--chunk", type=int, default=4096)
     ap.add_argument("--ppix", action="store_true", help="PpIX under violet light (module docstring)")
+    ap.add_argument("--white-light", action="store_true", help="with --ppix: a white light instead of the violet LED")
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
@@ -59,7 +61,7 @@ def main() -> None:
         free = ["saturation", "c_ppix"]
         truth = np.stack([rng.uniform(0.4, 0.9, (n, n)), rng.uniform(0.2, 3.0, (n, n))])
         light = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
-        light = light / light.max()
+        light = np.ones(light.shape) if args.white_light else light / light.max()
         y0 = model_stack(tissue, free, truth, white=white, scale=scale, light=light)
         gain = 3000.0 / y0.max((1, 2))  # each band exposed to its own peak
         mean = y0 * gain[:, None, None]
@@ -87,7 +89,7 @@ def main() -> None:
                flagged=int((~good).sum()), median_steps=float(np.median(res.steps)),
                median_rel_error={f: float(np.median(np.abs(res.values[i][good] / truth[i][good] - 1))) for i, f in enumerate(free)},
                within_2sigma=float(np.mean(np.abs((res.values[:k] - truth) / res.sigma[:k])[:, good] < 2)))
-    (HERE / f"results_speed_{n}{'_ppix' if args.ppix else ''}.json").write_text(json.dumps(out, indent=2) + "\n")
+    (HERE / f"results_speed_{n}{'_ppix' if args.ppix else ''}{'_white' if args.white_light else ''}.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
 
 
