@@ -17,6 +17,8 @@ per `passes`). Uncertainties: the covariance (J^T J)^-1 at the solution, mapped 
 values by the transforms' derivatives (the delta method). Pixels are flagged, never filled:
 FLAG_SOLVER (optimistix did not report success), FLAG_BOUND (a value at its bound), FLAG_SINGULAR
 (J^T J not invertible or a value not finite), FLAG_MASKED (fewer usable bands than unknowns).
+Several stacks of one field under different lights (`measured` a list) are joined along the band
+axis: the same tissue parameters predict each under its light, with one log scale per stack.
 `map_reference` solves pixel by pixel in a Python loop (the reference the vmapped path is tested
 against).
 """
