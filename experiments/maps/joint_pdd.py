@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -36,37 +35,25 @@ def main() -> None:
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import map as map_stack, model_for_tissue, model_stack
-    from tissuefit.scene import (
-        Blood,
-        ConstantAbsorption,
-        GaussianSpectrum,
-        LayerOptics,
-        PowerLawScattering,
-        SpectralTissue,
-        collagen,
-        protoporphyrin_ix,
-    )
+    from tissuefit.maps import band_exposure, map as map_stack, model_for_tissue, model_stack, violet_light
+
+    sys.path.insert(0, str(HERE))
+    from _pdd import pdd_mucosa  # experiments/maps/_pdd.py
 
     info = machine()
     n = args.size
     rng = np.random.default_rng(3)
-    tissue = SpectralTissue(LayerOptics((Blood(0.02, 0.7), ConstantAbsorption(0.5), collagen(), protoporphyrin_ix()),
-                                        PowerLawScattering(18.9, 1.286, 0.9)), n=[1.4], thickness=[math.inf])
+    tissue = pdd_mucosa()
     t = time.perf_counter()
     white = model_for_tissue(tissue)
     model_s = time.perf_counter() - t
     free = ["blood_fraction", "saturation", "c_ppix"]
     truth = np.stack([rng.uniform(0.01, 0.04, (n, n)), rng.uniform(0.4, 0.9, (n, n)), rng.uniform(0.3, 3.0, (n, n))])
-    violet = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
-    violet = violet / violet.max()
+    violet = violet_light(tissue.bands)
 
     def stack(light, gain):
-        y0 = model_stack(tissue, free, truth, white=white, light=light)
-        expose = 3000.0 / y0.max((1, 2))
-        mean = y0 * expose[:, None, None]
-        data = (rng.poisson(mean) + rng.normal(0.0, 2.0, mean.shape)) / expose[:, None, None]
-        return Measurement(gain * data, gain**2 * (mean + 4.0) / expose[:, None, None] ** 2)
+        data, var = band_exposure(model_stack(tissue, free, truth, white=white, light=light), rng=rng)
+        return Measurement(gain * data, gain**2 * var)
 
     white_stack, pdd_stack = stack(None, 1.0), stack(violet, 0.37)
     runs = {"white light alone": (white_stack, None), "violet (PDD) alone": (pdd_stack, violet),

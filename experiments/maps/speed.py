@@ -38,35 +38,24 @@ def main() -> None:
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import build_model, camera_noise, map as map_stack, model_stack
-    from tissuefit.scene import (
-        Blood,
-        ConstantAbsorption,
-        GaussianSpectrum,
-        LayerOptics,
-        PowerLawScattering,
-        SpectralTissue,
-        collagen,
-        protoporphyrin_ix,
-    )
+    from tissuefit.maps import band_exposure, build_model, camera_noise, map as map_stack, model_stack, violet_light
+    from tissuefit.scene import Blood, ConstantAbsorption, LayerOptics, PowerLawScattering, SpectralTissue
+
+    sys.path.insert(0, str(HERE))
+    from _pdd import pdd_mucosa  # experiments/maps/_pdd.py
 
     info = machine()
     n = args.size
     rng = np.random.default_rng(0)
     scale = rng.uniform(0.5, 2, (n, n))
     if args.ppix:
-        tissue = SpectralTissue(LayerOptics((Blood(0.02, 0.7), ConstantAbsorption(0.5), collagen(), protoporphyrin_ix()),
-                                            PowerLawScattering(18.9, 1.286, 0.9)), n=[1.4], thickness=[math.inf])
+        tissue = pdd_mucosa()
         white = build_model((0.9,), (1.4,), photons=4000, fluorescence=20_000, seed=5, cache=False)
         free = ["saturation", "c_ppix"]
         truth = np.stack([rng.uniform(0.4, 0.9, (n, n)), rng.uniform(0.2, 3.0, (n, n))])
-        light = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
-        light = np.ones(light.shape) if args.white_light else light / light.max()
+        light = np.ones(tissue.bands.num_bands) if args.white_light else violet_light(tissue.bands)
         y0 = model_stack(tissue, free, truth, white=white, scale=scale, light=light)
-        gain = 3000.0 / y0.max((1, 2))  # each band exposed to its own peak
-        mean = y0 * gain[:, None, None]
-        counts = (rng.poisson(mean) + rng.normal(0.0, 2.0, mean.shape)) / gain[:, None, None]
-        var = (mean + 4.0) / gain[:, None, None] ** 2
+        counts, var = band_exposure(y0, rng=rng)  # each band exposed to its own peak
     else:
         tissue = SpectralTissue(LayerOptics((Blood(0.02, 0.7), ConstantAbsorption(0.5)), PowerLawScattering(18.9, 1.286, 0.9)),
                                 n=[1.4], thickness=[math.inf])

@@ -39,13 +39,6 @@ LESION = (-0.3, 0.3, -0.3, 0.3)
 C_LESION, C_MUCOSA = 3.0, 0.3
 
 
-def optics(c_ppix):
-    from tissuefit.scene import Blood, ConstantAbsorption, LayerOptics, PowerLawScattering, collagen, protoporphyrin_ix
-
-    return LayerOptics((Blood(0.02, 0.7), ConstantAbsorption(0.5), collagen(), protoporphyrin_ix(c=c_ppix)),
-                       PowerLawScattering(18.9, 1.286, 0.9))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--photons", type=int, default=1_000_000)
@@ -56,20 +49,21 @@ def main() -> None:
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import map as map_stack, model_for_tissue
+    from tissuefit.maps import band_exposure, map as map_stack, model_for_tissue, violet_light
     from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
     from tissuefit.scene import Box, GaussianSpectrum, SpectralTissue
 
     sys.path.insert(0, str(HERE))
+    from _pdd import pdd_mucosa, pdd_optics  # experiments/maps/_pdd.py
     from validate import pixel_geometry  # experiments/maps/validate.py
 
     x0, x1, y0, y1 = LESION
     if args.homogeneous:
         x0, x1, y0, y1 = -10.0, 10.0, -10.0, 10.0  # the "lesion" covers the field
-        tissue = SpectralTissue(optics(C_LESION), n=[1.4], thickness=[math.inf])
+        tissue = pdd_mucosa(c=C_LESION)
     else:
-        tissue = SpectralTissue(optics(C_MUCOSA), n=[1.4], thickness=[math.inf],
-                                regions=[Box((x0, y0, 0.0), (x1, y1, 2.0), optics=optics(C_LESION))])
+        tissue = SpectralTissue(pdd_optics(c=C_MUCOSA), n=[1.4], thickness=[math.inf],
+                                regions=[Box((x0, y0, 0.0), (x1, y1, 2.0), optics=pdd_optics(c=C_LESION))])
     led = GaussianSpectrum(405.0, 20.0)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
@@ -77,19 +71,15 @@ def main() -> None:
                options=RenderOptions(specular_deg=0.0, smoothing="none"))
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
-    rng = np.random.default_rng(11)
-    gain = args.peak_counts / np.maximum(raw.max((1, 2)), 1e-300)
-    mean = raw * gain[:, None, None]
-    data = (rng.poisson(np.maximum(mean, 0)) + rng.normal(0, 2.0, mean.shape)) / gain[:, None, None]
-    var = (np.maximum(mean, 0) + 4.0) / gain[:, None, None] ** 2 + rvar
+    data, cam_var = band_exposure(raw, rng=np.random.default_rng(11), peak_counts=args.peak_counts)
+    var = cam_var + rvar
     x, y, cosv = pixel_geometry(e)
     inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
     outside = np.hypot(np.maximum(np.maximum(x0 - x, x - x1), 0), np.maximum(np.maximum(y0 - y, y - y1), 0))
     edge = np.where(inside, np.minimum(np.minimum(x - x0, x1 - x), np.minimum(y - y0, y1 - y)), outside)
     c_true = np.where(inside, C_LESION, C_MUCOSA)
-    light = np.asarray(led.band_power(tissue.bands))
-    light = light / light.max()
-    model_tissue = SpectralTissue(optics(1.0), n=[1.4], thickness=[math.inf])
+    light = violet_light(tissue.bands)  # the band powers of `led`, peak 1
+    model_tissue = pdd_mucosa(c=1.0)
     t = time.perf_counter()
     white = model_for_tissue(model_tissue, photons=50_000)
     model_s = time.perf_counter() - t

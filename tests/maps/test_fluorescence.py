@@ -55,27 +55,21 @@ def test_fluorescence_agrees_with_direct_traces(white_fluorescent, mua_x, musr_x
 def _pdd_stack(white, truth, light, rng):
     """A model-made stack under `light`, each band exposed to 3000 counts at its peak (Poisson and
     read noise 2), the exposure divided out: (data, variance)."""
-    from tissuefit.maps import model_stack
+    from tissuefit.maps import band_exposure, model_stack
 
-    free = list(truth)
-    y0 = model_stack(pdd_mucosa(), free, np.stack(list(truth.values())), white=white, light=light)
-    gain = 3000.0 / y0.max((1, 2))
-    mean = y0 * gain[:, None, None]
-    data = (rng.poisson(mean) + rng.normal(0.0, 2.0, mean.shape)) / gain[:, None, None]
-    return data, (mean + 4.0) / gain[:, None, None] ** 2
+    y0 = model_stack(pdd_mucosa(), list(truth), np.stack(list(truth.values())), white=white, light=light)
+    return band_exposure(y0, rng=rng)
 
 
 def test_ppix_map_under_violet_light(white_fluorescent):
     """A PDD-camera stack (violet light only: the red bands see PpIX and collagen fluorescence alone)
     mapped back: c_ppix within 3 sigma in every good pixel and within 10 % at the median."""
     from tissuefit.fit import Measurement
-    from tissuefit.maps import map as map_stack
-    from tissuefit.scene import GaussianSpectrum
+    from tissuefit.maps import map as map_stack, violet_light
 
     rng = np.random.default_rng(4)
     tissue = pdd_mucosa()
-    violet = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
-    light = violet / violet.max()
+    light = violet_light(tissue.bands)
     shape = (4, 4)
     truth = {"saturation": rng.uniform(0.5, 0.9, shape), "c_ppix": rng.uniform(0.3, 3.0, shape)}
     data, var = _pdd_stack(white_fluorescent, truth, light, rng)
@@ -120,13 +114,11 @@ def test_white_and_violet_stacks_map_jointly(white_fluorescent):
     blood fraction, saturation and c_ppix within 3 sigma, each stack's scale recovered, and blood
     fraction better determined than from the violet stack alone."""
     from tissuefit.fit import Measurement
-    from tissuefit.maps import map as map_stack
-    from tissuefit.scene import GaussianSpectrum
+    from tissuefit.maps import map as map_stack, violet_light
 
     rng = np.random.default_rng(6)
     tissue = pdd_mucosa()
-    violet = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(tissue.bands))
-    violet = violet / violet.max()
+    violet = violet_light(tissue.bands)
     shape = (3, 3)
     truth = {"blood_fraction": rng.uniform(0.01, 0.04, shape), "saturation": rng.uniform(0.5, 0.9, shape),
              "c_ppix": rng.uniform(0.5, 3.0, shape)}

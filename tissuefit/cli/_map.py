@@ -19,10 +19,9 @@ def parse_light(text: str, bands):
     if text == "white":
         return None
     if text == "violet":
-        from ..scene import GaussianSpectrum
+        from ..maps import violet_light
 
-        p = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(bands))
-        return p / p.max()
+        return violet_light(bands)
     try:
         values = np.array([float(v) for v in text.split(",")])
     except ValueError:

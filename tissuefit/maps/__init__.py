@@ -14,5 +14,10 @@ from ._cache import build_model as build_model, default_model_dir as default_mod
 from ._model import WhiteModel as WhiteModel, hermite_weights as hermite_weights, view_weights as view_weights
 from ._result import FLAG_BITS as FLAG_BITS, MAPS_FORMAT as MAPS_FORMAT, MapResult as MapResult
 from ._solve import FLAGS as FLAGS, map as map, map_reference as map_reference
-from ._spectra import PixelSpectra as PixelSpectra, free_parameters as free_parameters, reference_properties as reference_properties
-from ._synthetic import camera_noise as camera_noise, model_stack as model_stack
+from ._spectra import (
+    PixelSpectra as PixelSpectra,
+    free_parameters as free_parameters,
+    reference_properties as reference_properties,
+    violet_light as violet_light,
+)
+from ._synthetic import band_exposure as band_exposure, camera_noise as camera_noise, model_stack as model_stack

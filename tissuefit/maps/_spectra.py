@@ -26,7 +26,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..fit import FitParameter, Layout, scene_parameters
-from ..scene import Blood, ConstantAbsorption, ConstantScattering, Fluorophore, PowerLawScattering, TabulatedAbsorber, emission_spectrum
+from ..scene import (
+    Blood,
+    ConstantAbsorption,
+    ConstantScattering,
+    Fluorophore,
+    GaussianSpectrum,
+    PowerLawScattering,
+    TabulatedAbsorber,
+    emission_spectrum,
+)
 
 GAUSS_POINTS = 4
 """Nodes per band of the power law's quadrature (`gauss_rule`)."""
@@ -70,6 +79,14 @@ PAIR_FLOOR = 1e-4
 
 ALIASES = {"saturation": "blood_saturation", "ppix": "c_ppix"}
 """Short names `--free` accepts beside the fit's (`saturation` for `blood_saturation`)."""
+
+
+def violet_light(bands) -> np.ndarray:
+    """[bands] a PDD camera's violet light per band, peak band 1: a 405 nm LED of 20 nm FWHM
+    (`GaussianSpectrum`; `tissuefit.scene.violet_led` documents the choice of LED), no other light,
+    so that the red bands see fluorescence alone. The `light` of `map` for such a stack."""
+    p = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(bands), np.float64)
+    return p / p.max()
 
 
 def free_parameters(tissue, names) -> list[FitParameter]:

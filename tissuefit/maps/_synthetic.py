@@ -33,6 +33,18 @@ def model_stack(model, free, values, *, white=None, scale=None, view=1.0, light=
     return out if scale is None else out * np.asarray(scale, np.float64)
 
 
+def band_exposure(stack, *, rng: np.random.Generator, peak_counts: float = 3000.0, read_noise: float = 2.0):
+    """Each band of `stack` [bands, H, W] exposed on its own to `peak_counts` at its brightest pixel,
+    Poisson-Gaussian camera noise added, and the exposure divided out again (as a camera with an
+    exposure per band, e.g. a PDD camera whose red bands see only fluorescence): (data, variance of
+    the noise model a = 1, b = read_noise^2 at the noise-free counts), both in the stack's units."""
+    stack = np.asarray(stack, np.float64)
+    gain = (peak_counts / np.maximum(stack.max((1, 2)), 1e-300))[:, None, None]
+    mean = np.maximum(stack * gain, 0.0)
+    data = (rng.poisson(mean) + rng.normal(0.0, read_noise, stack.shape)) / gain
+    return data, (mean + read_noise**2) / gain**2
+
+
 def camera_noise(stack, *, rng: np.random.Generator, peak_counts: float = 3000.0, read_noise: float = 2.0):
     """Poisson-Gaussian camera noise on `stack` scaled to `peak_counts` at its brightest sample:
     (counts [bands, H, W], variance of the noise model a = 1, b = read_noise^2 evaluated at the
