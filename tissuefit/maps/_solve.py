@@ -75,6 +75,8 @@ class Problem(eqx.Module):
         """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
         ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
+        if self.light is None and not self.spectra.fluorophores:  # one stack under white light
+            return ly, rel
         light = jnp.ones((self.stacks, mua.shape[0])) if self.light is None else jnp.asarray(self.light)
         if not self.spectra.fluorophores:
             return (ly + jnp.log(light)).reshape(-1), jnp.broadcast_to(rel, light.shape).reshape(-1)
