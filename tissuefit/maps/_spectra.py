@@ -31,10 +31,10 @@ from ..scene import (
     ConstantAbsorption,
     ConstantScattering,
     Fluorophore,
-    GaussianSpectrum,
     PowerLawScattering,
     TabulatedAbsorber,
     emission_spectrum,
+    violet_led,
 )
 
 GAUSS_POINTS = 4
@@ -82,10 +82,10 @@ ALIASES = {"saturation": "blood_saturation", "ppix": "c_ppix"}
 
 
 def violet_light(bands) -> np.ndarray:
-    """[bands] a PDD camera's violet light per band, peak band 1: a 405 nm LED of 20 nm FWHM
-    (`GaussianSpectrum`; `tissuefit.scene.violet_led` documents the choice of LED), no other light,
-    so that the red bands see fluorescence alone. The `light` of `map` for such a stack."""
-    p = np.asarray(GaussianSpectrum(405.0, 20.0).band_power(bands), np.float64)
+    """[bands] a PDD camera's violet light per band, peak band 1: `tissuefit.scene.violet_led` at
+    20 nm FWHM (a 405 nm LED), no other light, so that the red bands see fluorescence alone. The
+    `light` of `map` for such a stack."""
+    p = np.asarray(violet_led(fwhm_nm=20.0).band_power(bands), np.float64)
     return p / p.max()
 
 
