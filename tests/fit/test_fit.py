@@ -178,6 +178,7 @@ def test_re_traces_draw_fresh_random_numbers_and_average_the_settled_landings():
     assert got.outcome.successful, got.outcome.value
     assert got.settings["averaged"] == 2 and seen[-1].samples == 2 and len(seen) == len(got.history) <= 10
     assert [r.retrace for r in seen] == list(range(len(seen)))
+    assert all(0 < r.seconds_render <= r.seconds for r in seen)  # the render's stages, counted once
     assert seen[0].phase in ("approach", "arrive") and seen[-1].phase == "sample"
     one = got.simulation_uncertainties * math.sqrt(2)  # one render's; the measurement has 10x the photons
     spread = np.hypot(got.uncertainties, one / math.sqrt(10))

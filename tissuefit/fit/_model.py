@@ -61,7 +61,7 @@ class RenderModel(eqx.Module):
 
     def sample(self, x, *, key, photons: int):
         """(images [B, bands, H', W'], derivatives [B, p_t, bands, H', W'] along each tissue
-        coordinate of x (the scale excluded), the render's timings), binned."""
+        coordinate of x (the scale excluded), binned; the render's seconds)."""
         x = jnp.asarray(x, jnp.float64)
         size = self.layout.size - int(self.layout.scale)
         eye = jnp.eye(self.layout.size, dtype=jnp.float64)
@@ -75,4 +75,4 @@ class RenderModel(eqx.Module):
                      illumination=self.illumination, options=self.options, observation_filter=self.observation_filter,
                      tangents=tangents, keep_batches=True)
         sims = out.batches + out.specular[None]  # the lights' reflection: no Monte Carlo noise, no fitted coefficient
-        return bin_image(sims, self.binning), bin_image(out.tangent_batches, self.binning), out.timings
+        return bin_image(sims, self.binning), bin_image(out.tangent_batches, self.binning), out.seconds

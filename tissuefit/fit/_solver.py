@@ -78,9 +78,17 @@ class Problem(eqx.Module):
                    key=key, config=config)
 
     def linearise(self, x, key, photons: int) -> tuple[Linearisation, np.ndarray, dict]:
-        """Render at x and linearise (`Linearisation`); also the scaled mean image [bands, H', W'] and timings."""
+        """Render at x and linearise (`Linearisation`); also the scaled mean image [bands, H', W'] and the
+        render's seconds."""
+        sample = self.model.sample(x, key=key, photons=photons)
+        lin, image = self.linearise_sample(x, sample)
+        return lin, image, sample[2]
+
+    def linearise_sample(self, x, sample) -> tuple[Linearisation, np.ndarray]:
+        """`linearise` of a render already made (`RenderModel.sample`) at x's tissue coordinates: the
+        render does not depend on the scale, so one render serves every scale."""
         layout = self.layout
-        sims, tangents, timings = self.model.sample(x, key=key, photons=photons)
+        sims, tangents, _ = sample
         scale = float(layout.scale_of(jnp.asarray(x)))
         s_b = scale * sims[:, self.use]  # [B, n]
         j_b = scale * np.moveaxis(tangents[:, :, self.use], 1, -1)  # [B, n, p_t]
@@ -93,7 +101,7 @@ class Problem(eqx.Module):
             prior = ((values - self.prior_mean) / self.prior_sd, dv / self.prior_sd[:, None])
         lin = linearise(x, s_b, j_b, self.data, self.variance, self.band, prior=prior,
                         simulation_variance=self.config.simulation_variance)
-        return lin, scale * sims.mean(0), timings
+        return lin, scale * sims.mean(0)
 
 
 class StepRecord(eqx.Module):
@@ -164,10 +172,11 @@ def step(problem: Problem, state: FitState) -> FitState:
     photons = config.approach if state.phase == "approach" else config.photons
     key = problem.key if state.retrace == 0 else jax.random.fold_in(problem.key, state.retrace)
     x = state.x
-    lin, _, timings = problem.linearise(x, key, photons)
+    sample = problem.model.sample(x, key=key, photons=photons)
+    lin, _ = problem.linearise_sample(x, sample)
     if state.retrace == 0 and layout.scale:
         # the free scale starts at the least-squares gain of the first render (camera units are arbitrary)
-        x, lin = _start_scale(problem, x, lin, key, photons)
+        x, lin = _start_scale(problem, x, lin, sample)
     if not np.all(np.isfinite(lin.step)):
         return eqx.tree_at(lambda s: (s.retrace, s.outcome), state, (state.retrace + 1, Outcome.NON_FINITE))
     fraction = _step_fraction(layout, x, lin.step)
@@ -193,15 +202,16 @@ def step(problem: Problem, state: FitState) -> FitState:
                         values=tuple(float(v) for v in np.asarray(layout.values(jnp.asarray(nxt)))), chi2=lin.chi2,
                         step_fraction=float(fraction), settled_chi2=jitter, bound=bound, samples=len(samples),
                         singular=lin.singular, seconds=time.perf_counter() - t0,
-                        seconds_render=float(sum(timings.values())))
+                        seconds_render=sample[2])
     done = len(samples) >= config.average
     return FitState(x=np.mean(samples, axis=0) if done else nxt, phase=phase, samples=tuple(samples),
                     retrace=state.retrace + 1, history=state.history + (record,),
                     outcome=Outcome.SUCCESSFUL if done else state.outcome)
 
 
-def _start_scale(problem: Problem, x, lin: Linearisation, key, photons):
-    """x with its log-scale at the weighted least-squares gain of the render, and the linearisation there."""
+def _start_scale(problem: Problem, x, lin: Linearisation, sample):
+    """x with its log-scale at the weighted least-squares gain of the render `sample`, and the
+    linearisation there (of the same render)."""
     n = problem.data.size
     sim = (lin.residuals[:n] * lin.sigma + problem.data)  # the scaled render's used samples
     w = 1.0 / np.maximum(problem.variance, 1e-300)
@@ -210,7 +220,7 @@ def _start_scale(problem: Problem, x, lin: Linearisation, key, photons):
         return x, lin
     x = x.copy()
     x[-1] += math.log(num / den)
-    lin, _, _ = problem.linearise(x, key, photons)
+    lin, _ = problem.linearise_sample(x, sample)
     return x, lin
 
 

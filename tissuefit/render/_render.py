@@ -89,7 +89,8 @@ class RenderResult(eqx.Module):
       kernel found a record).
     - `photons`: launches traced, `launched_fraction`: the illumination's power they carry.
     - `filter_transmission` [bands]: the observation filter's band averages (ones without one).
-    - `timings` (dict of seconds per stage: trace, maps, geometry, estimate).
+    - `timings` (dict of seconds per stage: trace, maps, geometry, estimate; the next-event trace's
+      parts as trace_launches, trace_sites, trace_paths); `seconds` their total.
     - `trace`: the `SpectralResult` of the launches (tallies; records dropped); `outcome` its `Outcome`.
     - next-event estimator with `keep_batches`: `batches` [batches, bands, H, W], the raw diffuse
       image of each independent batch of photons; with `tangents`: `tangents` [K, bands, H, W] the
@@ -122,6 +123,11 @@ class RenderResult(eqx.Module):
         """How the render's trace ended (`tissuefit.Outcome`, that of `trace`): BUDGET_EXHAUSTED
         when `TraceOptions.max_steps` stopped it early (the image then misses light)."""
         return self.trace.outcome
+
+    @property
+    def seconds(self) -> float:
+        """The render's time [s]: the sum of its stages (`timings` without the trace's parts)."""
+        return float(sum(v for k, v in self.timings.items() if not k.startswith("trace_")))
 
 
 class _Setup(eqx.Module):
