@@ -13,9 +13,12 @@ read noise 2) and the render's own variance weigh the residuals.
 Reported per parameter: median relative (blood fraction) / absolute (saturation) error and the
 fraction of pixels within 2 sigma, over all good pixels, over pixels >= 0.1 cm from a patch edge and
 by distance from the nearest edge. Writes results_validate_<tag>.json, validate_<tag>.png and the render
-render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band].
+render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone].
 
-    PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous]
+    PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous] [--cone-lights]
+
+Shared spectral paths (the default) give ~8x the SNR^2 per second of --per-band on this scene but
+correlate the render's noise across bands (RESULTS.md, §3b'').
 """
 
 from __future__ import annotations
