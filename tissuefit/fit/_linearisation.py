@@ -40,7 +40,9 @@ class Linearisation(eqx.Module):
     - `hessian` [p, p]: the unbiased Gauss–Newton matrix H; `gradient` [p]: the unbiased J^T r.
     - `noise` [p, p]: D = J^T J - H; `shift` [p]: J^T r - gradient.
     - `step` [p]: -H^-1 gradient (-(J^T J)^-1 gradient where H is not positive definite:
-      `singular`); `step_covariance` [p, p]: its jackknife Monte Carlo covariance over the batches.
+      `singular`); `step_covariance` [p, p]: its jackknife Monte Carlo covariance over the batches;
+      `gradient_covariance` [p, p]: the gradient's (for a step with another H, e.g. averaged over
+      renders: H^-1 C_g H^-1, which stays defined where one render's leave-one-out H is not).
     - `chi2`: sum of the residuals squared; `q` [bands]: the simulation's variance per unit signal.
     """
 
@@ -54,6 +56,7 @@ class Linearisation(eqx.Module):
     shift: np.ndarray
     step: np.ndarray
     step_covariance: np.ndarray
+    gradient_covariance: np.ndarray
     chi2: float
     q: np.ndarray
     singular: bool
@@ -97,18 +100,23 @@ def linearise(x, sim_batches, jac_batches, data, variance, band, *, prior=None,
     # plain J^T J, biased but positive definite; `singular` says so
     step, singular = _solve(h, g, jtj)
     # jackknife: the step from every set of B - 1 batches
-    leave_one_out = []
+    steps, gradients = [], []
     for k in range(batches):
         hk, gk = parts.hessian_gradient(k)
         if prior is not None:
             hk, gk = hk + j_p.T @ j_p, gk + j_p.T @ r_p
-        leave_one_out.append(_solve(hk, gk, jtj)[0])
+        steps.append(_solve(hk, gk, jtj)[0])
+        gradients.append(gk)
+    return Linearisation(x=np.asarray(x, np.float64), residuals=resid, sigma=sigma, jacobian=jm, hessian=h, gradient=g,
+                         noise=jtj - h, shift=jtr - g, step=step, step_covariance=_jackknife(steps),
+                         gradient_covariance=_jackknife(gradients), chi2=float(resid @ resid), q=q, singular=singular)
+
+
+def _jackknife(leave_one_out) -> np.ndarray:
+    """The jackknife covariance [p, p] from the B leave-one-out values [B, p]."""
     d = np.asarray(leave_one_out)
     centred = d - d.mean(0)
-    cov = (batches - 1) / batches * centred.T @ centred
-    return Linearisation(x=np.asarray(x, np.float64), residuals=resid, sigma=sigma, jacobian=jm, hessian=h, gradient=g,
-                         noise=jtj - h, shift=jtr - g, step=step, step_covariance=cov, chi2=float(resid @ resid), q=q,
-                         singular=singular)
+    return (d.shape[0] - 1) / d.shape[0] * centred.T @ centred
 
 
 class _Parts:
