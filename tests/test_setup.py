@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -21,7 +22,9 @@ def _run(code: str) -> dict:
 
 
 def test_import_changes_no_jax_setting_and_a_users_float32_code_is_unchanged():
+    example = Path(tissuefit.__file__).resolve().parents[1] / "data_spec" / "examples" / "paper_lesion_render.toml"
     got = _run("""
+        EXAMPLE = "__EXAMPLE__"
         import json
         import jax, jax.numpy as jnp
         def users_code():
@@ -34,10 +37,14 @@ def test_import_changes_no_jax_setting_and_a_users_float32_code_is_unchanged():
         # an entry point works without configure() (float64 only for its own duration) ...
         r = tf.trace(tf.Scene(tf.paper_tissue(), tf.PencilBeam()), key=jax.random.key(0), photons=500)
         after_trace = users_code()
+        # ... and so does reading a scene file (no float64 warning under -W error)
+        from tissuefit import io
+        run = io.read_scene(EXAMPLE)
+        assert users_code() == before
         print(json.dumps({"before": before, "after_import": after_import, "after_trace": after_trace,
                           "settings": settings, "rd_type": type(r.rd).__name__, "rd": float(r.rd),
                           "x64_after": jax.config.jax_enable_x64, "devices": len(jax.devices())}))
-    """)
+    """.replace("__EXAMPLE__", str(example)))
     assert got["before"][0] == "float32"
     assert got["after_import"] == got["before"]
     assert got["after_trace"] == got["before"]

@@ -7,8 +7,8 @@ allows while `jax_enable_x64` is on. Two ways to have it:
   process, one XLA CPU device per core (the tracer shards its photons over devices; XLA's own
   threading of the step loop is erratic, one device per core is not), and JAX's persistent
   compilation cache in the user's cache directory, so that a second run skips compilation.
-- Or call the entry points without it: `trace`, `trace_spectral`, `render`, `fit`, `map` and the
-  replay functions switch float64 on for their own duration (`jax.enable_x64`, a context, not the
+- Or call the entry points without it: `trace`, `trace_spectral`, `render`, `fit`, `map`,
+  `io.read_scene` and the replay functions switch float64 on for their own duration (`jax.enable_x64`, a context, not the
   global flag) and hand back numpy arrays or float64 JAX arrays. A user's own float32 code before
   and after is untouched. Inside a user's `jit`, `grad` or `vmap` without float64 they refuse with a
   message naming `configure()`: a traced program cannot switch precision half-way.

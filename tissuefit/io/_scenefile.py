@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._setup import float64
 from ..scene import FlatBeam, LaunchList, LayeredTissue, PencilBeam, Scene, SpectralScene, SpectralTissue
 from ..transport import RecordSpec, SpectralOptions, TallySpec, TraceOptions, resolve_config
 from . import _spectralfile
@@ -215,6 +216,7 @@ def _check_semi_infinite_glass(tissue: SpectralTissue) -> None:
         )
 
 
+@float64
 def read_scene(path) -> Run | SpectralRun:
     """Read a scene file (TOML, format "tissuefit-scene/1"; see data_spec/scene.md): a `Run`, or a
     `SpectralRun` when the file uses spectral features. File names inside it are relative to its folder.

@@ -347,7 +347,7 @@ class LayerOptics(eqx.Module):
 
     def properties(self, bands: BandGrid) -> tuple[Float[Array, " bands"], Float[Array, " bands"], Float[Array, " bands"]]:
         """(mua [1/cm], mus [1/cm], g [-]) per band; differentiable in every model coefficient."""
-        mua = jnp.zeros(bands.num_bands, jnp.float64)
+        mua = jnp.zeros(bands.num_bands, jnp.result_type(float))  # float64 where enabled, no warning where not
         for a in self.absorbers:
             mua = mua + a.absorption(bands)
         mus, g = self.scattering.scattering(bands)
