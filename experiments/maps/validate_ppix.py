@@ -49,9 +49,9 @@ def main() -> None:
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import band_exposure, map as map_stack, model_for_tissue, violet_light
+    from tissuefit.maps import VIOLET_FWHM_NM, band_exposure, map as map_stack, model_for_tissue, violet_light
     from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
-    from tissuefit.scene import Box, GaussianSpectrum, SpectralTissue
+    from tissuefit.scene import Box, SpectralTissue, violet_led
 
     sys.path.insert(0, str(HERE))
     from _pdd import pdd_mucosa, pdd_optics  # experiments/maps/_pdd.py
@@ -64,7 +64,7 @@ def main() -> None:
     else:
         tissue = SpectralTissue(pdd_optics(c=C_MUCOSA), n=[1.4], thickness=[math.inf],
                                 regions=[Box((x0, y0, 0.0), (x1, y1, 2.0), optics=pdd_optics(c=C_LESION))])
-    led = GaussianSpectrum(405.0, 20.0)
+    led = violet_led(fwhm_nm=VIOLET_FWHM_NM)  # the light violet_light's band powers describe
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
     r = render(tissue, e, spectrum=led, photons=args.photons, key=jax.random.key(7), illumination=Floodlight(radius=1.2),

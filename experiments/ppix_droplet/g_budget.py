@@ -49,7 +49,7 @@ from tissuefit import io, render as rd  # noqa: E402
 from tissuefit.fit import FitConfig, Measurement  # noqa: E402
 from tissuefit.fit._fit import _layout  # noqa: E402
 from tissuefit.fit._model import RenderModel  # noqa: E402
-from tissuefit.fit._solver import Problem  # noqa: E402
+from tissuefit.fit._solver import Problem, _start_scale  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -90,12 +90,8 @@ def main(argv=None) -> None:
         sample = model.sample(x, key=jax.random.fold_in(jax.random.key(5), k), photons=args.photons)
         seconds = time.perf_counter() - t
         lin, _ = problem.linearise_sample(x, sample)
-        if k == 0:  # the scale at the least-squares gain (the render does not depend on it)
-            sim = lin.residuals[:problem.data.size] * lin.sigma + problem.data
-            w = 1.0 / problem.variance
-            x = x.copy()
-            x[-1] += math.log(np.sum(w * sim * problem.data) / np.sum(w * sim * sim))
-            lin, _ = problem.linearise_sample(x, sample)
+        if k == 0:  # the scale at the least-squares gain, as the fit's first re-trace sets it
+            x, lin = _start_scale(problem, x, lin, sample)
         lins.append(lin)
         row = {"render": k, "seconds": seconds, "render_seconds": sample[2], "singular": bool(lin.singular),
                "hessian_eigenvalues": np.linalg.eigvalsh(lin.hessian).tolist(),

@@ -77,7 +77,7 @@ class Problem(eqx.Module):
                    prior_index=np.asarray(index, int), prior_mean=np.asarray(mean, float), prior_sd=np.asarray(sd, float),
                    key=key, config=config)
 
-    def linearise(self, x, key, photons: int) -> tuple[Linearisation, np.ndarray, dict]:
+    def linearise(self, x, key, photons: int) -> tuple[Linearisation, np.ndarray, float]:
         """Render at x and linearise (`Linearisation`); also the scaled mean image [bands, H', W'] and the
         render's seconds."""
         sample = self.model.sample(x, key=key, photons=photons)

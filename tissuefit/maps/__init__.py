@@ -15,6 +15,7 @@ from ._model import WhiteModel as WhiteModel, hermite_weights as hermite_weights
 from ._result import FLAG_BITS as FLAG_BITS, MAPS_FORMAT as MAPS_FORMAT, MapResult as MapResult
 from ._solve import FLAGS as FLAGS, map as map, map_reference as map_reference
 from ._spectra import (
+    VIOLET_FWHM_NM as VIOLET_FWHM_NM,
     PixelSpectra as PixelSpectra,
     free_parameters as free_parameters,
     reference_properties as reference_properties,

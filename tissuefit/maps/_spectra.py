@@ -81,11 +81,15 @@ ALIASES = {"saturation": "blood_saturation", "ppix": "c_ppix"}
 """Short names `--free` accepts beside the fit's (`saturation` for `blood_saturation`)."""
 
 
+VIOLET_FWHM_NM = 20.0
+"""FWHM [nm] of the PDD camera's violet LED that `violet_light` (and `tissuefit map --light violet`) assumes."""
+
+
 def violet_light(bands) -> np.ndarray:
     """[bands] a PDD camera's violet light per band, peak band 1: `tissuefit.scene.violet_led` at
-    20 nm FWHM (a 405 nm LED), no other light, so that the red bands see fluorescence alone. The
-    `light` of `map` for such a stack."""
-    p = np.asarray(violet_led(fwhm_nm=20.0).band_power(bands), np.float64)
+    `VIOLET_FWHM_NM` (a 405 nm LED), no other light, so that the red bands see fluorescence alone.
+    The `light` of `map` for such a stack."""
+    p = np.asarray(violet_led(fwhm_nm=VIOLET_FWHM_NM).band_power(bands), np.float64)
     return p / p.max()
 
 
