@@ -81,7 +81,8 @@ def _load(path: Path, key: str) -> WhiteModel | None:
                               grid_spec=(float(z["grid"][0]), float(z["grid"][1] - z["grid"][0]), int(z["grid"].size)),
                               log_value=z["log_value"], log_slope=z["log_slope"], rel_variance=z["rel_variance"],
                               eps=z["eps"], fl_photons=int(meta.get("fl_photons", 0)),
-                              **{k: z[k] for k in ("fl_source", "fl_escape", "fl_rel_variance") if k in z.files})
+                              **{k: z[k] for k in ("fl_source", "fl_escape", "fl_rel_variance") if k in z.files}
+                              ).with_integral()
     except (OSError, ValueError, KeyError):
         return None  # unreadable or stale: rebuilt (and overwritten) by the caller
 

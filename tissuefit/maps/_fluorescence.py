@@ -32,6 +32,12 @@ the reflectance):
     S_b(a) = sum_{conversions in b} c exp(-(a - eps) L0) / eps
     e_b(a) = sum_{escapes converted in b} c w' exp(-(a - eps) Lm) / sum_{conversions in b} c
 
+Evaluating that sum per band pair and pixel (~60 pairs x 66 bins under a violet light, ~200 pairs
+under white light) made a fluorescent map ~20x the cost of a reflectance map. `integral_table`
+therefore sums it once per node, on a grid of (log10 a_j, log10 a_k, shift in depth bins, exit-angle
+bin), and `node_integral` interpolates ln I there (trilinear; 8 corners per pair);
+`node_integral_reference` is the per-pair sum it is tested against.
+
 The Monte Carlo error of I is that of the direct estimator at r = 1,
 sum c w' exp(-(a_j - eps) L0 - (a_k - eps) Lm) / eps over escapes, tabulated on a coarser (a_j,
 a_k) grid. Measured against direct traces: experiments/maps/RESULTS.md.
@@ -57,6 +63,13 @@ BOOST = 20.0
 """`SpectralOptions.conversion_boost` of the fluorescence trace's second half (`trace_fluorescence`)."""
 LOG_A_VAR = (-6.0, 3.0, 31)
 """log10 a grid of the relative-variance table (0.3 decades)."""
+LOG_A_I = (-6.0, 3.0, 91)
+"""log10 a grid (both a_j and a_k) of the integral table (`integral_table`; 0.1 decades, every
+other node of `LOG_A_F`)."""
+SHIFTS = 16
+"""The integral table's shifts, -SHIFTS..SHIFTS depth bins (0.1 decades each): emission and
+excitation reduced scattering within a factor 10^1.6 = 40 of each other (a power law with b = 4
+spans 10^1.0 over 400-720 nm); a larger ratio is evaluated at the table's end."""
 
 
 def depth_edges(depth=DEPTH) -> np.ndarray:
@@ -219,14 +232,67 @@ def _lerp_log(table, u, spec):
     return jnp.moveaxis((1.0 - f) * lo + f * hi, -1, 0)
 
 
-def node_integral(source, escape, rel_variance, mua, mus, g_node: float, g: float, view, pairs, *, depth=DEPTH,
-                  log_a=LOG_A_F, log_a_var=LOG_A_VAR):
+def integral_table(source, escape, *, depth=DEPTH, log_a=LOG_A_F, log_a_i=LOG_A_I, shifts: int = SHIFTS) -> np.ndarray:
+    """ln I [Au, Au, 2 shifts + 1, V] of one node (`source` [B, A], `escape` [V, B, A] ln tables):
+    ln sum_b S_b(a_j) e_v,b+s(a_k) at log10 a_j, log10 a_k on the grid `log_a_i` (every other node of
+    `log_a`) and integer shifts s (depth bins; b + s clamped to the bins, as `node_integral_reference`
+    clamps), per exit-angle bin v; without the factor (1 - g_node) / mus'_j. Exactly the reference's
+    sum at those nodes."""
+    grid, grid_i = _grid(log_a), _grid(log_a_i)
+    at = np.searchsorted(grid, grid_i - 1e-9)
+    if not np.allclose(grid[at], grid_i, atol=1e-9):
+        raise ValueError(f"integral_table: the grid {log_a_i} is not a subset of the tables' grid {log_a}")
+    s_lin = np.exp(np.asarray(source, np.float64)[:, at]).T  # [Au, B]
+    e_lin = np.exp(np.asarray(escape, np.float64)[:, :, at])  # [V, B, Au]
+    nb = s_lin.shape[1]
+    out = np.empty((grid_i.size, grid_i.size, 2 * shifts + 1, e_lin.shape[0]))
+    for i, s in enumerate(range(-shifts, shifts + 1)):
+        rows = np.clip(np.arange(nb) + s, 0, nb - 1)
+        out[:, :, i, :] = np.einsum("jb,vbk->jkv", s_lin, e_lin[:, rows, :])
+    return np.log(np.maximum(out, 1e-300))
+
+
+def node_integral(table, rel_variance, mua, mus, g_node: float, g: float, view, pairs, *, depth=DEPTH,
+                  log_a_i=LOG_A_I, log_a_var=LOG_A_VAR, shifts: int = SHIFTS):
     """ln I [P] (cm; ln of a floor where nothing converts) and its relative variance for the
-    (excitation j, emission k) band pairs `pairs` ((j...), (k...)) of one node (tables `source`
-    [B, A], `escape` [V, B, A] as ln values, `rel_variance` [V, Av, Av]), for the medium mua, mus
-    [bands] (1/cm) with anisotropy g, evaluated at the node's anisotropy g_node at fixed a' and
-    reduced depth (the similarity relation; exact at g = g_node); `view` [V] weights over the
-    exit-angle bins."""
+    (excitation j, emission k) band pairs `pairs` ((j...), (k...)) of one node (`table` [Au, Au,
+    S, V] of `integral_table`, `rel_variance` [V, Av, Av]), for the medium mua, mus [bands] (1/cm)
+    with anisotropy g, evaluated at the node's anisotropy g_node at fixed a' and reduced depth (the
+    similarity relation; exact at g = g_node); `view` [V] weights over the exit-angle bins.
+    ln I per exit-angle bin is trilinear in (log10 a_j, log10 a_k, shift) between the table's nodes,
+    then mixed over the bins: 8 gathers of V values per pair."""
+    j, k = (np.asarray(p, np.int32) for p in pairs)
+    a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30) * (1.0 - g_node) / (1.0 - g)
+    u = jnp.log10(jnp.maximum(a, 1e-300))
+    lo, hi, nb = depth
+    mus_r = mus * (1.0 - g)
+    shift = jnp.log10(mus_r[k] / mus_r[j]) / ((hi - lo) / (int(nb) - 1))  # [P] in depth bins
+    (ij, fj), (ik, fk) = (_node_index(u[idx], log_a_i) for idx in (j, k))
+    is_, fs = _node_index(shift + shifts, (0.0, 2.0 * shifts, 2 * shifts + 1))
+    value = 0.0
+    for dj, wj in ((0, 1.0 - fj), (1, fj)):
+        for dk, wk in ((0, 1.0 - fk), (1, fk)):
+            for ds, ws in ((0, 1.0 - fs), (1, fs)):
+                value = value + (wj * wk * ws)[:, None] * table[ij + dj, ik + dk, is_ + ds]  # [P, V]
+    total = jnp.einsum("pv,v->p", jnp.exp(value), view)
+    ln_i = jnp.log(jnp.maximum(total, 1e-300)) + jnp.log((1.0 - g_node) / mus_r[j])
+    rv = jnp.einsum("v,vp->p", view / jnp.maximum(jnp.sum(view), 1e-300), _lerp_2d(rel_variance, u[j], u[k], log_a_var))
+    return ln_i, rv
+
+
+def _node_index(x, spec):
+    """(lower node index, fraction) of x on the uniform grid `spec` (from, to, nodes), clamped to it."""
+    x0, x1, n = spec
+    h = (x1 - x0) / (int(n) - 1)
+    t = jnp.clip((x - x0) / h, 0.0, int(n) - 1.0 - 1e-9)
+    return jnp.floor(t).astype(jnp.int32), t - jnp.floor(t)
+
+
+def node_integral_reference(source, escape, rel_variance, mua, mus, g_node: float, g: float, view, pairs, *,
+                            depth=DEPTH, log_a=LOG_A_F, log_a_var=LOG_A_VAR):
+    """`node_integral` summed over the depth bins per pair (the module docstring's formula, from the
+    ln tables `source` [B, A] and `escape` [V, B, A] on the fine grid `log_a`): the reference the
+    table is tested against, ~20x its cost per pixel."""
     j, k = (np.asarray(p, np.int32) for p in pairs)
     a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30) * (1.0 - g_node) / (1.0 - g)
     u = jnp.log10(jnp.maximum(a, 1e-300))
@@ -253,14 +319,7 @@ def node_integral(source, escape, rel_variance, mua, mus, g_node: float, g: floa
 
 def _lerp_2d(table, uj, uk, spec):
     """Bilinear interpolation of `table` [V, Av, Av] at the pairs (uj, uk) [P]: [V, P]."""
-    u0, u1, na = spec
-    h = (u1 - u0) / (int(na) - 1)
-
-    def index(u):
-        t = jnp.clip((u - u0) / h, 0.0, int(na) - 1.0 - 1e-9)
-        return jnp.floor(t).astype(jnp.int32), t - jnp.floor(t)
-
-    a, fa = index(uj)
-    b, fb = index(uk)
+    a, fa = _node_index(uj, spec)
+    b, fb = _node_index(uk, spec)
     return ((1 - fa) * (1 - fb) * table[:, a, b] + fa * (1 - fb) * table[:, a + 1, b]
             + (1 - fa) * fb * table[:, a, b + 1] + fa * fb * table[:, a + 1, b + 1])

@@ -20,7 +20,8 @@ The standard error is the Monte Carlo one of the nodes' tables, interpolated as 
 Fluorescence (`fluorescence`, when the model was built with it; `_fluorescence.py`): the integral
 I_jk [cm] of the excitation fluence in band j times the escape of emission in band k over depth,
 from which a fluorophore's escaping fluorescence is Y s_jk mua_f,j I_jk; interpolated over the g and
-n nodes like the reflectance (ln I at fixed a', Catmull-Rom weights).
+n nodes like the reflectance (ln I at fixed a', Catmull-Rom weights), each node's I read from its
+integral table (`_fluorescence.integral_table`).
 """
 
 from __future__ import annotations
@@ -115,6 +116,9 @@ class WhiteModel(eqx.Module):
     """[G, N, V, B, A_f] ln e_b(a)."""
     fl_rel_variance: np.ndarray | None = None
     """[G, N, V, A_v, A_v] relative variance of I at equal reduced scattering."""
+    fl_integral: np.ndarray | None = None
+    """[G, N, A_i, A_i, S, V] ln I summed over depth (`_fluorescence.integral_table`; derived from
+    the two tables above by `with_integral`, not stored on disk)."""
     fl_photons: int = eqx.field(static=True, default=0)
 
     @property
@@ -143,7 +147,15 @@ class WhiteModel(eqx.Module):
                    log_value=np.where(pos, np.log(safe), np.log(TINY)),
                    log_slope=np.where(pos, slope / safe * LN10, 0.0),
                    rel_variance=np.where(pos, var / safe / safe, 0.0),
-                   eps=np.array([[t["eps"] for t in row] for row in tables]), **fl)
+                   eps=np.array([[t["eps"] for t in row] for row in tables]), **fl).with_integral()
+
+    def with_integral(self) -> WhiteModel:
+        """This model with `fl_integral` derived from its fluorescence tables (itself without them)."""
+        if self.fl_source is None:
+            return self
+        table = np.array([[_fluorescence.integral_table(src, esc) for src, esc in zip(srow, erow)]
+                          for srow, erow in zip(self.fl_source, self.fl_escape)])
+        return eqx.tree_at(lambda m: m.fl_integral, self, table, is_leaf=lambda x: x is None)
 
     @property
     def num_views(self) -> int:
@@ -198,7 +210,7 @@ class WhiteModel(eqx.Module):
         rel = 0.0
         for i, gi in enumerate(self.g_nodes):
             for j in range(len(self.n_nodes)):
-                ln_i, rv = _fluorescence.node_integral(jnp.asarray(self.fl_source[i, j]), jnp.asarray(self.fl_escape[i, j]),
+                ln_i, rv = _fluorescence.node_integral(jnp.asarray(self.fl_integral[i, j]),
                                                        jnp.asarray(self.fl_rel_variance[i, j]), mua, mus, gi, g, view,
                                                        pairs)
                 w = wg[i] * wn[j]
