@@ -566,6 +566,14 @@ def test_the_parser_offers_the_library_choices():
     from tissuefit.cli import _main
 
     assert _main.COMPARE_NORMALISE == io.COMPARE_NORMALISE
+    # `map --light violet`: the help states the LED width that maps.violet_light renders with
+    import argparse
+
+    from tissuefit.maps import VIOLET_FWHM_NM
+
+    (commands,) = [a for a in _main.parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    (light,) = [a for a in commands.choices["map"]._actions if "--light" in a.option_strings]
+    assert f"{VIOLET_FWHM_NM:g} nm FWHM" in light.help
 
 
 # ---------------------------------------------------------------------------------------------
