@@ -5,16 +5,17 @@ camera's violet light, mapped back with the white Monte Carlo fluorescence model
 Scene: the demo mucosa (blood 2 % at 70 % saturation, 0.5 /cm background, power-law scattering a =
 18.9 /cm, b = 1.286, g = 0.9, n = 1.4) with collagen (built-in, c = 1) and PpIX (built-in: d = 0.1,
 yield 0.1) at c = 0.3 in the mucosa and c = 3 in a 0.6 x 0.6 cm lesion (a Box region 2 cm deep, same
-optics otherwise). Light: Floodlight (1.2 cm disc), spectrum a 405 nm LED of 20 nm FWHM
+optics otherwise). Light: Floodlight (1.2 cm disc; `--cone-lights`: the endoscope's two cone lights,
+oblique and falling off across the field, the irradiance left to the per-pixel scale), spectrum a 405 nm LED of 20 nm FWHM
 (GaussianSpectrum); camera: pinhole 1 cm above, straight down, 70 deg field; next-event render, no
 smoothing. Each band is exposed to `--peak-counts` at its brightest pixel (Poisson and read noise 2),
 the exposure divided out; residual variance = camera noise + the render's own variance.
 Free per pixel: c_ppix, saturation and the scale (blood fraction, a, b known), light = the LED's
 band powers. Reported: median relative error of c_ppix and the fraction within 2 sigma, in the
 lesion and the mucosa, >= 0.1 cm from the lesion's edge and near it. Writes
-results_validate_ppix_<width>px[_homogeneous].json and validate_ppix_<width>px[_homogeneous].png.
+results_validate_ppix_<width>px[_homogeneous][_cone].json and validate_ppix_<width>px[_homogeneous][_cone].png.
 
-    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16]
+    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16] [--homogeneous] [--cone-lights]
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ def main() -> None:
     ap.add_argument("--peak-counts", type=float, default=3000.0)
     ap.add_argument("--homogeneous", action="store_true",
                     help="no lesion: c_ppix = 3 everywhere (where the local model's assumption holds)")
+    ap.add_argument("--cone-lights", action="store_true",
+                    help="the endoscope's two cone lights instead of the floodlight (oblique light falling off across "
+                         "the field; the LED's spectrum is the same everywhere, so the per-pixel scale takes the irradiance)")
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
@@ -67,7 +71,8 @@ def main() -> None:
     led = violet_led(fwhm_nm=VIOLET_FWHM_NM)  # the light violet_light's band powers describe
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
-    r = render(tissue, e, spectrum=led, photons=args.photons, key=jax.random.key(7), illumination=Floodlight(radius=1.2),
+    r = render(tissue, e, spectrum=led, photons=args.photons, key=jax.random.key(7),
+               illumination=None if args.cone_lights else Floodlight(radius=1.2),
                options=RenderOptions(specular_deg=0.0, smoothing="none"))
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
@@ -121,7 +126,7 @@ def main() -> None:
                median_red_snr=float(np.median(raw[13:] / np.sqrt(np.maximum(rvar[13:], 1e-300)))),
                region_average=dict(lesion=region(inside & far), mucosa=region(~inside & far)))
     print(json.dumps(out, indent=2))
-    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "")
+    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_cone" if args.cone_lights else "")
     (HERE / f"results_validate_ppix_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
     import matplotlib
 
