@@ -222,11 +222,7 @@ def _lerp_log(table, u, spec):
     """exp of the linear interpolant of ln `table` [..., A] (`table` holds ln values) at log10 a = u
     [...] on the uniform grid `spec`, clamped to its ends: [..., u.shape..., ] broadcast as
     table[..., k] with k from u (u [n] -> [n, ...rest])."""
-    u0, u1, na = spec
-    h = (u1 - u0) / (int(na) - 1)
-    t = jnp.clip((u - u0) / h, 0.0, int(na) - 1.0 - 1e-9)
-    k = jnp.floor(t).astype(jnp.int32)
-    f = t - jnp.floor(t)
+    k, f = _node_index(u, spec)
     lo = jnp.take(table, k, axis=-1)
     hi = jnp.take(table, k + 1, axis=-1)
     return jnp.moveaxis((1.0 - f) * lo + f * hi, -1, 0)
@@ -262,8 +258,7 @@ def node_integral(table, rel_variance, mua, mus, g_node: float, g: float, view, 
     ln I per exit-angle bin is trilinear in (log10 a_j, log10 a_k, shift) between the table's nodes,
     then mixed over the bins: 8 gathers of V values per pair."""
     j, k = (np.asarray(p, np.int32) for p in pairs)
-    a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30) * (1.0 - g_node) / (1.0 - g)
-    u = jnp.log10(jnp.maximum(a, 1e-300))
+    u = _node_log_a(mua, mus, g_node, g)
     lo, hi, nb = depth
     mus_r = mus * (1.0 - g)
     shift = jnp.log10(mus_r[k] / mus_r[j]) / ((hi - lo) / (int(nb) - 1))  # [P] in depth bins
@@ -280,6 +275,13 @@ def node_integral(table, rel_variance, mua, mus, g_node: float, g: float, view, 
     return ln_i, rv
 
 
+def _node_log_a(mua, mus, g_node: float, g: float):
+    """log10 a [bands] at which the node (anisotropy g_node) is read for the medium mua, mus, g: the
+    same a' = a / (1 - g) (the similarity relation)."""
+    a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30) * (1.0 - g_node) / (1.0 - g)
+    return jnp.log10(jnp.maximum(a, 1e-300))
+
+
 def _node_index(x, spec):
     """(lower node index, fraction) of x on the uniform grid `spec` (from, to, nodes), clamped to it."""
     x0, x1, n = spec
@@ -294,8 +296,7 @@ def node_integral_reference(source, escape, rel_variance, mua, mus, g_node: floa
     ln tables `source` [B, A] and `escape` [V, B, A] on the fine grid `log_a`): the reference the
     table is tested against, ~20x its cost per pixel."""
     j, k = (np.asarray(p, np.int32) for p in pairs)
-    a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30) * (1.0 - g_node) / (1.0 - g)
-    u = jnp.log10(jnp.maximum(a, 1e-300))
+    u = _node_log_a(mua, mus, g_node, g)
     # the tables are read once per excitation band and once per emission band, then gathered per pair
     # (~140 pairs on collagen and PpIX, at most 21 distinct bands on either side)
     bj, at_j = np.unique(j, return_inverse=True)

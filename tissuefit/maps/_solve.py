@@ -238,6 +238,15 @@ def _run(problem, arrays, pixels, method, max_steps, chunk, rtol, atol, progress
     return [np.concatenate(o) for o in zip(*outs)]
 
 
+def _merge(out, pixels, again):
+    """Write a later solve's outputs `again` (`_run`'s, one row per pixel of `pixels`) over `out` at
+    `pixels`, its steps counted on top of the earlier solve's."""
+    steps_before = out[6][pixels]
+    for o, a in zip(out, again):
+        o[pixels] = a
+    out[6][pixels] += steps_before
+
+
 def _no_where(tissue):
     raise AssertionError("maps: parameters are set through PixelSpectra, not tree_at")
 
@@ -396,20 +405,12 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
         for _ in range(GN_ROUNDS - 1):
             more = np.flatnonzero(~out[5] & np.all(np.isfinite(out[2]), 1))
             if more.size:
-                again = _run(problem, (out[2], *arrays[1:]), more, "gn", GN_STEPS, chunk, rtol, atol, None)
-                steps_before = out[6][more]
-                for o, a in zip(out, again):
-                    o[more] = a
-                out[6][more] += steps_before
+                _merge(out, more, _run(problem, (out[2], *arrays[1:]), more, "gn", GN_STEPS, chunk, rtol, atol, None))
         timings["gauss_newton"] += time.perf_counter() - t
         retry = np.flatnonzero(~out[5] | ~np.all(np.isfinite(out[0]), 1))
         t = time.perf_counter()
         if retry.size:
-            steps_before = out[6][retry]
-            again = _run(problem, arrays, retry, "lm", max_steps, chunk, rtol, atol, None)
-            for o, a in zip(out, again):
-                o[retry] = a
-            out[6][retry] += steps_before
+            _merge(out, retry, _run(problem, arrays, retry, "lm", max_steps, chunk, rtol, atol, None))
         timings["levenberg_marquardt"] += time.perf_counter() - t
         nat, sd, x, chi2, nuse, ok, steps, finite = out
         lm_pixels = int(retry.size)
