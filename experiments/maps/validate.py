@@ -13,9 +13,15 @@ read noise 2) and the render's own variance weigh the residuals.
 Reported per parameter: median relative (blood fraction) / absolute (saturation) error and the
 fraction of pixels within 2 sigma, over all good pixels, over pixels >= 0.1 cm from a patch edge and
 by distance from the nearest edge. Writes results_validate_<tag>.json, validate_<tag>.png and the render
-render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone].
+render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone][_<photons>].
 
-    PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous] [--cone-lights]
+    PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous]
+        [--cone-lights [--lighting]] [--saved] [--tag-photons]
+
+Under the cone lights `--lighting` maps with each pixel's `Lighting` (tissuefit.maps.pixel_lighting:
+the model corrected for the lights' oblique incidence and fall-off), and the rows of the uniform,
+normal-incidence model are kept beside them ("rows_uniform"). `--saved` maps the render saved by an
+earlier run (render_<tag>.npz) instead of rendering again.
 
 Shared spectral paths (the default) give ~8x the SNR^2 per second of --per-band on this scene but
 correlate the render's noise across bands (RESULTS.md, §3b'').
@@ -97,20 +103,74 @@ def main() -> None:
                          "(mua 0.5 /cm, mus 500 /cm, g 0.9: the same in every band) times the model's reflectance of that reference")
     ap.add_argument("--homogeneous", action="store_true",
                     help="no patches: the base mucosa everywhere (where the local model's assumption holds)")
+    ap.add_argument("--lighting", action="store_true",
+                    help="(with --cone-lights) map with each pixel's Lighting as well as with the uniform model")
+    ap.add_argument("--saved", action="store_true", help="map the saved render_<tag>.npz instead of rendering")
+    ap.add_argument("--tag-photons", action="store_true", help="put the photon count in the file names")
     args = ap.parse_args()
+    if args.lighting and not args.cone_lights:
+        ap.error("--lighting corrects for the cone lights: give --cone-lights too")
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import map as map_stack, model_for_tissue
-    from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
-    from tissuefit.transport import SpectralOptions
+    from tissuefit.maps import map as map_stack, model_for_tissue, pixel_lighting
+    from tissuefit.render import Endoscope
 
     info = machine()
     patches = [] if args.homogeneous else PATCHES
     tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
-           + ("_cone" if args.cone_lights else ""))
+           + ("_cone" if args.cone_lights else "") + (f"_{args.photons}" if args.tag_photons else ""))
+    out_tag = tag + ("_lit" if args.lighting else "")
     tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
+    if args.saved:
+        saved = np.load(HERE / f"render_{tag}.npz")
+        raw, rvar = saved["raw"], saved["variance"]
+    else:
+        raw, rvar = render_stack(args, tissue, e)
+    render_s = time.perf_counter() - t
+    if not args.saved:
+        np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for regions.py (80 KB at 16 px)
+    gain = args.peak_counts / raw.max()
+    rng = np.random.default_rng(11)
+    mean = raw * gain
+    counts = rng.poisson(np.maximum(mean, 0)) + rng.normal(0, 2.0, mean.shape)
+    cam_var = np.maximum(mean, 0) + 4.0
+    var = cam_var + rvar * gain**2
+    x, y, cosv = pixel_geometry(e)
+    f_true, s_true, edge = truth_maps(x, y, patches)
+    base = optics(*BASE)
+    from tissuefit.scene import SpectralTissue
+
+    model_tissue = SpectralTissue(base, n=[1.4], thickness=[math.inf])
+    t = time.perf_counter()
+    white = model_for_tissue(model_tissue, photons=50_000, lighting=args.lighting)
+    model_s = time.perf_counter() - t
+    lighting = pixel_lighting(e)[1] if args.lighting else None
+    res = map_stack(Measurement(counts, var), model_tissue, ["blood_fraction", "saturation"], white=white, view=cosv,
+                    lighting=lighting, chunk=1024)
+    uniform = (map_stack(Measurement(counts, var), model_tissue, ["blood_fraction", "saturation"], white=white,
+                         view=cosv, chunk=1024) if args.lighting else None)
+    rows = accuracy(res, f_true, s_true, edge)
+    snr = float(np.median(mean / np.sqrt(var)))
+    render_share = float(np.median(rvar * gain**2 / var))
+    out = dict(machine=info, homogeneous=bool(args.homogeneous), per_band=bool(args.per_band), photons=args.photons,
+               width=args.width, saved_render=bool(args.saved), render_seconds=None if args.saved else render_s,
+               model_seconds=model_s, lighting=bool(args.lighting), map_seconds=res.seconds,
+               flagged=int((res.flags != 0).sum()), median_snr=snr, median_render_variance_share=render_share, rows=rows)
+    if uniform is not None:
+        out["rows_uniform"] = accuracy(uniform, f_true, s_true, edge)
+    (HERE / f"results_validate_{out_tag}.json").write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
+    plot(args, res, f_true, s_true, out_tag)
+
+
+def render_stack(args, tissue, e):
+    """The render [bands, H, W] and its variance: under the floodlight, or under the cone lights
+    divided by a white reference's render and multiplied by the model's reflectance of it."""
+    from tissuefit.render import Floodlight, RenderOptions, render
+    from tissuefit.transport import SpectralOptions
+
     light = None if args.cone_lights else Floodlight(radius=1.2)
     spectral = SpectralOptions(mode="per_band") if args.per_band else None
     r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=light,
@@ -135,25 +195,12 @@ def main() -> None:
         ratio = raw / w_raw * rho_w
         rvar = ratio**2 * (rvar / raw**2 + w_var / w_raw**2)
         raw = ratio
-    render_s = time.perf_counter() - t
-    np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for regions.py (80 KB at 16 px)
-    gain = args.peak_counts / raw.max()
-    rng = np.random.default_rng(11)
-    mean = raw * gain
-    counts = rng.poisson(np.maximum(mean, 0)) + rng.normal(0, 2.0, mean.shape)
-    cam_var = np.maximum(mean, 0) + 4.0
-    var = cam_var + rvar * gain**2
-    x, y, cosv = pixel_geometry(e)
-    f_true, s_true, edge = truth_maps(x, y, patches)
-    base = optics(*BASE)
-    from tissuefit.scene import SpectralTissue
+    return raw, rvar
 
-    model_tissue = SpectralTissue(base, n=[1.4], thickness=[math.inf])
-    t = time.perf_counter()
-    white = model_for_tissue(model_tissue, photons=50_000)
-    model_s = time.perf_counter() - t
-    res = map_stack(Measurement(counts, var), model_tissue, ["blood_fraction", "saturation"], white=white, view=cosv,
-                    chunk=1024)
+
+def accuracy(res, f_true, s_true, edge) -> dict:
+    """Per-pixel accuracy rows of a map against the truth: all good pixels, away from edges and by
+    distance from the nearest patch edge."""
     good = res.flags == 0
     fe = res["blood_fraction"] / f_true - 1
     se = res["blood_saturation"] - s_true
@@ -175,13 +222,13 @@ def main() -> None:
     rows = {"all": stats(np.ones_like(good)), "away_from_edges (>= 0.1 cm)": stats(edge >= 0.1)}
     for lo, hi in ((0, 0.03), (0.03, 0.1), (0.1, 0.2), (0.2, np.inf)):
         rows[f"edge distance {lo}-{hi} cm"] = stats((edge >= lo) & (edge < hi))
-    snr = float(np.median(mean / np.sqrt(var)))
-    render_share = float(np.median(rvar * gain**2 / var))
-    out = dict(machine=info, homogeneous=bool(args.homogeneous), per_band=bool(args.per_band), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
-               map_seconds=res.seconds, flagged=int((~good).sum()), median_snr=snr,
-               median_render_variance_share=render_share, rows=rows)
-    (HERE / f"results_validate_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
-    print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
+    return rows
+
+
+def plot(args, res, f_true, s_true, tag) -> None:
+    good = res.flags == 0
+    fe = res["blood_fraction"] / f_true - 1
+    se = res["blood_saturation"] - s_true
     import matplotlib
 
     matplotlib.use("Agg")
@@ -200,7 +247,8 @@ def main() -> None:
             ax[row, col].set_xticks([])
             ax[row, col].set_yticks([])
             fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
-    fig.suptitle(f"{'cone lights / white reference' if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
+    what = "cone lights / white reference" + (", lighting-corrected model" if args.lighting else "")
+    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
                  f"{args.peak_counts:g} counts (blood fraction and saturation are dimensionless)", fontsize=10)
     fig.tight_layout()
     fig.savefig(HERE / f"validate_{tag}.png", dpi=100)

@@ -31,6 +31,8 @@ def _measured(tmp_path, white, h=3, w=3):
     (["--free", "blood_fraction", "--view-cos", "1.5"], "--view-cos = 1.5"),
     (["--free", "blood_fraction", "--chunk", "0"], "--chunk"),
     (["--free", "blood_fraction", "--smoothness", "-1"], "--smoothness = -1"),
+    (["--free", "blood_fraction", "--lighting", "endoscope"],
+     "--lighting endoscope: the measured stack has 2 x 2 pixels, the scene's endoscope camera 24 x 24"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, extra, message, white):
     measured, _ = _measured(tmp_path, white, 2, 2)

@@ -28,6 +28,8 @@ COMMANDS = ("simulate", "render", "check", "compare", "synthesize", "fit", "map"
 # Choices the parser offers; tests/test_cli.py checks them against the library's own tuples
 # (tissuefit.io.COMPARE_NORMALISE), which would import JAX here.
 COMPARE_NORMALISE = ("stack", "band", "none")
+LIGHTINGS = ("uniform", "endoscope")
+"""`map --lighting`: the light the per-pixel model assumes."""
 
 
 class InvalidInput(Exception):
@@ -303,6 +305,12 @@ def _map_parser(commands) -> None:
     mp.add_argument("--no-scale", action="store_true", help="no per-pixel scale (MEASURED is a calibrated reflectance)")
     mp.add_argument("--view-cos", type=float, metavar="C", default=1.0,
                     help="cosine of the viewing angle against the surface normal (default 1: straight down)")
+    mp.add_argument("--lighting", choices=LIGHTINGS, default="uniform",
+                    help="uniform (default): the model's light is wide, uniform and normal, as a floodlight's; "
+                         "endoscope: MEASURED is the camera of --scene's [endoscope] under its two cone lights, and each "
+                         "pixel's model is corrected for their oblique incidence and fall-off around it (its viewing "
+                         "cosine also comes from the geometry, not --view-cos; the model is built with its lighting "
+                         "tables, about 50 s more the first time)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
                     help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
     mp.add_argument("--light", metavar="white|violet|P1,P2,...", action="append",

@@ -31,6 +31,21 @@ def parse_light(text: str, bands):
     return values
 
 
+def pixel_geometry(args, run, shape):
+    """(viewing cosine, `Lighting` or None) of `--lighting`: `--view-cos` under uniform light, or
+    both from the scene file's endoscope, whose camera must have the stack's pixels."""
+    if args.lighting == "uniform":
+        return args.view_cos, None
+    from ..maps import pixel_lighting
+
+    endoscope = (run.render or io.RenderSpec()).endoscope
+    if (endoscope.height, endoscope.width) != tuple(shape):
+        raise ValueError(f"--lighting endoscope: the measured stack has {shape[0]} x {shape[1]} pixels, the scene's "
+                         f"endoscope camera {endoscope.height} x {endoscope.width} (set [endoscope] width and height "
+                         "to the stack's)")
+    return pixel_lighting(endoscope)
+
+
 def run(args) -> int:
     out = out_folder(args.out)
     scene = render_run(args.scene)
@@ -62,22 +77,24 @@ def run(args) -> int:
             stacks.append(stack)
             measurements.append(measurement)
         measured, light = (measurements[0], lights[0]) if len(measurements) == 1 else (measurements, lights)
-        white = model_for_tissue(tissue, photons=args.model_photons, seed=args.model_seed, progress=None if args.json else
-                                 (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
+        view, lighting = pixel_geometry(args, scene, measurements[0].shape[1:])
+        white = model_for_tissue(tissue, photons=args.model_photons, seed=args.model_seed, lighting=lighting is not None,
+                                 progress=None if args.json else (lambda s: print(f"  {s}", file=sys.stderr, flush=True)))
 
         def progress(done, total):
             check_interrupt()
             if not args.json:
                 print(f"  {done}/{total} pixels", file=sys.stderr, flush=True)
 
-        result = map_stack(measured, tissue, free, white=white, scale=not args.no_scale, view=args.view_cos, light=light,
-                           smoothness=args.smoothness, chunk=args.chunk, progress=progress)
+        result = map_stack(measured, tissue, free, white=white, scale=not args.no_scale, view=view, light=light,
+                           lighting=lighting, smoothness=args.smoothness, chunk=args.chunk, progress=progress)
     except ValueError as err:
         raise InvalidInput(f"{', '.join(args.measured)}: {err}") from None
     one = len(stacks) == 1
     preparation = [{k: s.report.get(k) for k in ("dead_bands", "registration")} for s in stacks]
     extra = {"scene_file": str(args.scene), "measured": args.measured[0] if one else args.measured, "free": free,
-             "init": args.init, "light": names[0] if one else names, "units": stacks[0].units if one else [s.units for s in stacks],
+             "init": args.init, "light": names[0] if one else names, "lighting": args.lighting,
+             "units": stacks[0].units if one else [s.units for s in stacks],
              "preparation": preparation[0] if one else preparation}
     files = io.write_maps(out, result, extra=extra)
     args.partial.files += files

@@ -5,12 +5,15 @@
   tabulated per exit angle; `build_model` / `model_for_tissue` cache it on disk (`_cache.py`).
 - `map(measured, model, free)`: per-pixel Levenberg-Marquardt (optimistix), vmapped and chunked,
   with a free per-pixel scale, the fit's bound transforms, the measurement's noise model, dead
-  bands masked and an optional smoothness prior (`_solve.py`); `MapResult` (`_result.py`; its
+  bands masked and an optional smoothness prior (`_solve.py`); under an endoscope's lights each
+  pixel's `Lighting` (`pixel_lighting`) corrects the model for oblique, falling-off light
+  (`_lighting.py`); `MapResult` (`_result.py`; its
   files are written by `tissuefit.io.write_maps`, data_spec/maps.md, whose `format` is `MAPS_FORMAT`).
 """
 
 from ._build import COS_EDGES as COS_EDGES, reflectance_from_records as reflectance_from_records, trace_white as trace_white
 from ._cache import build_model as build_model, default_model_dir as default_model_dir, model_for_tissue as model_for_tissue
+from ._lighting import Lighting as Lighting, pixel_lighting as pixel_lighting
 from ._model import WhiteModel as WhiteModel, hermite_weights as hermite_weights, view_weights as view_weights
 from ._result import FLAG_BITS as FLAG_BITS, MAPS_FORMAT as MAPS_FORMAT, MapResult as MapResult
 from ._solve import FLAGS as FLAGS, map as map, map_reference as map_reference

@@ -50,12 +50,22 @@ def check_node(g: float, n: float) -> tuple[float, float]:
     return float(g), float(n)
 
 
-def trace_white(g: float, n: float, *, photons: int, key, a_floor: float = A_FLOOR, lanes: int = 512) -> dict:
+def trace_white(g: float, n: float, *, photons: int, key, a_floor: float = A_FLOOR, lanes: int = 512,
+                polar_deg: float = 0.0) -> dict:
     """Trace `photons` photons into a semi-infinite medium (mus = 1 /cm, mua = eps, anisotropy `g`,
-    refractive index `n` under air) from a normal pencil beam; return each escaping photon's
-    weight `w` (per launched photon, implicit capture at eps included), path `path` [1/mus units]
-    and exit cosine `cos` (outside), with `eps`, `photons` and the trace's `seconds`."""
-    from ..scene import BandGrid, ConstantAbsorption, ConstantScattering, LayerOptics, SpectralScene, SpectralTissue
+    refractive index `n` under air) from a pencil beam at the origin, incident at `polar_deg` from
+    the normal towards +x; return each escaping photon's weight `w` (per launched photon, implicit
+    capture at eps included), path `path` [1/mus units], exit cosine `cos` (outside) and exit point
+    `x`, `y` [1/mus units], with `eps`, `photons` and the trace's `seconds`."""
+    from ..scene import (
+        BandGrid,
+        ConstantAbsorption,
+        ConstantScattering,
+        LayerOptics,
+        PencilBeam,
+        SpectralScene,
+        SpectralTissue,
+    )
     from ..transport import RecordSpec, TraceOptions, trace_spectral
 
     g, n = check_node(g, n)
@@ -65,7 +75,8 @@ def trace_white(g: float, n: float, *, photons: int, key, a_floor: float = A_FLO
     tissue = SpectralTissue(LayerOptics(ConstantAbsorption(eps), ConstantScattering(1.0, g)), n=[n],
                             thickness=[math.inf], bands=BandGrid([500.0]))
     t = time.perf_counter()
-    result = trace_spectral(SpectralScene(tissue), key=key, photons=photons,
+    check_range("model.polar_deg", polar_deg, unit="deg", low=0.0, high=90.0, high_open=True)
+    result = trace_spectral(SpectralScene(tissue, source=PencilBeam(polar_deg=float(polar_deg))), key=key, photons=photons,
                             options=TraceOptions(lanes=lanes), records=RecordSpec(surface=2 * photons))
     rec = result.surface_records.valid()
     if rec.overflow:
@@ -74,8 +85,9 @@ def trace_white(g: float, n: float, *, photons: int, key, a_floor: float = A_FLO
     # one record per photon (a photon escapes once); several would need grouping for the variance
     if np.unique(np.asarray(rec.photon)).size != rec.count:
         raise RuntimeError("white Monte Carlo: a photon left more than one surface record")
+    xy = np.asarray(rec.position[:, :2], np.float64)
     return dict(g=g, n=n, eps=eps, photons=photons, w=w, path=np.asarray(rec.path[:, 0], np.float64),
-                cos=np.clip(-np.asarray(rec.direction[:, 2], np.float64), 0.0, 1.0),
+                cos=np.clip(-np.asarray(rec.direction[:, 2], np.float64), 0.0, 1.0), x=xy[:, 0], y=xy[:, 1], polar_deg=float(polar_deg),
                 rd=float(result.rd[0]), rd_stderr=float(result.rd_stderr[0]), seconds=time.perf_counter() - t)
 
 
@@ -133,10 +145,14 @@ def tabulate(traced: dict, *, log_a=LOG_A, cos_edges=COS_EDGES) -> dict:
                 variance=variance / share[:, None] ** 2)
 
 
+def node_key(g: float, n: float, seed: int):
+    """The key of node (g, n)'s traces: `jax.random.key(seed)` folded with the node."""
+    return jax.random.fold_in(jax.random.key(seed), int(round(g * 1e4)) * 100000 + int(round(n * 1e4)))
+
+
 def build_node(g: float, n: float, *, photons: int, seed: int, a_floor: float = A_FLOOR) -> dict:
-    """Trace and tabulate one (g, n) node (key: `jax.random.key(seed)` folded with the node)."""
-    key = jax.random.fold_in(jax.random.key(seed), int(round(g * 1e4)) * 100000 + int(round(n * 1e4)))
-    traced = trace_white(g, n, photons=photons, key=key, a_floor=a_floor)
+    """Trace and tabulate one (g, n) node (key: `node_key`)."""
+    traced = trace_white(g, n, photons=photons, key=node_key(g, n, seed), a_floor=a_floor)
     table = tabulate(traced)
     table.update(eps=traced["eps"], seconds=traced["seconds"], rd=traced["rd"], rd_stderr=traced["rd_stderr"])
     return table

@@ -30,7 +30,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from . import _fluorescence
+from . import _fluorescence, _lighting
 from ._build import COS_EDGES
 
 LN10 = float(np.log(10.0))
@@ -120,20 +120,36 @@ class WhiteModel(eqx.Module):
     """[G, N, A_i, A_i, S, V] ln I summed over depth (`_fluorescence.integral_table`; derived from
     the two tables above by `with_integral`, not stored on disk)."""
     fl_photons: int = eqx.field(static=True, default=0)
+    lit_q0: np.ndarray | None = None
+    """[G, N, T, A_l, K] the exit offsets' radial distribution per incidence angle
+    (`_lighting.INCIDENCE_DEG`) and bin of rho (`_lighting.tabulate_lighting`), or None."""
+    lit_q1: np.ndarray | None = None
+    """[G, N, T, A_l, K] its first harmonic along the light's azimuth."""
+    lit_photons: int = eqx.field(static=True, default=0)
 
     @property
     def fluorescent(self) -> bool:
         return self.fl_source is not None
 
+    @property
+    def lit(self) -> bool:
+        """Whether the model has the lighting tables (`_lighting.py`: oblique, non-uniform light)."""
+        return self.lit_q0 is not None
+
     @classmethod
     def from_tables(cls, tables, *, g_nodes, n_nodes, photons, a_floor, seed, cos_edges=COS_EDGES,
-                    fluorescence=None, fl_photons: int = 0) -> WhiteModel:
+                    fluorescence=None, fl_photons: int = 0, lighting=None, lit_photons: int = 0) -> WhiteModel:
         """Assemble from `tables[i][j]` (`_build.tabulate` of node (g_nodes[i], n_nodes[j])) and, if
-        given, `fluorescence[i][j]` (`_fluorescence.tabulate_fluorescence`)."""
+        given, `fluorescence[i][j]` (`_fluorescence.tabulate_fluorescence`) and `lighting[i][j]`
+        (`_lighting.tabulate_lighting`)."""
         fl = {}
+        if lighting is not None:
+            fl.update(lit_q0=np.array([[t["q0"] for t in row] for row in lighting]),
+                      lit_q1=np.array([[t["q1"] for t in row] for row in lighting]),
+                      lit_photons=int(lit_photons))
         if fluorescence is not None:
             ln = lambda key: np.log(np.maximum(np.array([[t[key] for t in row] for row in fluorescence]), TINY))  # noqa: E731
-            fl = dict(fl_source=ln("source"), fl_escape=ln("escape"), fl_photons=int(fl_photons),
+            fl.update(fl_source=ln("source"), fl_escape=ln("escape"), fl_photons=int(fl_photons),
                       fl_rel_variance=np.array([[t["rel_variance"] for t in row] for row in fluorescence]))
         grid = np.asarray(tables[0][0]["grid"])
         val = np.array([[t["value"] for t in row] for row in tables])
@@ -178,9 +194,26 @@ class WhiteModel(eqx.Module):
         var = jnp.sum((r * view) ** 2 * ((1 - t)[..., None] * rv.T[k] + t[..., None] * rv.T[k + 1]), -1)
         return jnp.log(jnp.maximum(rho, TINY)), var / jnp.maximum(rho, TINY) ** 2
 
-    def log_reflectance(self, mua, mus, g, n, view):
+    def log_lighting(self, mua, mus, g, n, lighting):
+        """ln F [...]: the factor by which light that is oblique and not uniform (`lighting`
+        [..., L, 5], `_lighting.Lighting.stacked`) changes the reflectance at mua, mus [1/cm] [...]
+        (`_lighting.py`), interpolated over the nodes like ln R. Differentiable in mua, mus, g, n."""
+        if not self.lit:
+            raise ValueError("this WhiteModel was built without lighting tables (build_model(lighting=True))")
+        wg = hermite_weights(self.g_nodes, g)
+        wn = hermite_weights(self.n_nodes, n)
+        out = 0.0
+        for i, gi in enumerate(self.g_nodes):
+            for j in range(len(self.n_nodes)):
+                f = _lighting.node_factor(self.lit_q0[i, j], self.lit_q1[i, j], mua, mus, gi, g, lighting)
+                out = out + wg[i] * wn[j] * jnp.log(jnp.maximum(f, TINY))
+        return out
+
+    def log_reflectance(self, mua, mus, g, n, view, lighting=None):
         """(ln rho, relative variance) at mua, mus [1/cm] (same shape [...]), scalars g, n, and
-        `view` [..., V] or [V] (`view_weights`). Differentiable in mua, mus, g, n."""
+        `view` [..., V] or [V] (`view_weights`); `lighting` ([..., L, 5], `Lighting.stacked`, or
+        None: uniform light at normal incidence) multiplies rho by `log_lighting`'s factor.
+        Differentiable in mua, mus, g, n."""
         a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30)
         wg = hermite_weights(self.g_nodes, g)
         wn = hermite_weights(self.n_nodes, n)
@@ -195,6 +228,8 @@ class WhiteModel(eqx.Module):
                 w = wg[i] * wn[j]
                 out = out + w * ly
                 rel = rel + w**2 * rv
+        if lighting is not None:
+            out = out + self.log_lighting(mua, mus, g, n, lighting)
         return out, rel
 
     def log_fluorescence(self, mua, mus, g, n, view, pairs):
@@ -218,11 +253,15 @@ class WhiteModel(eqx.Module):
                 rel = rel + w**2 * rv
         return out, rel
 
-    def reflectance(self, mua, mus, g, n, view=None):
+    def reflectance(self, mua, mus, g, n, view=None, lighting=None):
         """(rho, standard error): the reflectance a Lambertian surface of the same radiance in the
         `view` direction would have (`view=None`: the hemispherical diffuse reflectance Rd),
-        specular reflection excluded, per unit incident power, under a wide uniform beam."""
+        specular reflection excluded, per unit incident power, under a wide uniform beam at normal
+        incidence, or per unit irradiance at the pixel under `lighting` (a `Lighting`, its shape
+        [..., L] with ... that of mua, or its `stacked()` array)."""
         v = view_weights(None, self.cos_edges) if view is None else view
-        ly, rel = self.log_reflectance(jnp.asarray(mua), jnp.asarray(mus), g, n, v)
+        if isinstance(lighting, _lighting.Lighting):
+            lighting = lighting.stacked()
+        ly, rel = self.log_reflectance(jnp.asarray(mua), jnp.asarray(mus), g, n, v, lighting)
         rho = jnp.exp(ly)
         return rho, rho * jnp.sqrt(rel)

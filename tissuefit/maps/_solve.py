@@ -39,6 +39,7 @@ import optimistix as optx
 from .._checks import check_positive_int, check_range
 from .._setup import float64
 from ._cache import model_for_tissue
+from ._lighting import Lighting
 from ._model import TINY, WhiteModel, view_weights
 from ._result import MapResult
 from ._spectra import PixelSpectra, free_parameters
@@ -60,22 +61,25 @@ class Problem(eqx.Module):
     stack, 1 in every band)."""
     stacks: int = eqx.field(static=True, default=1)
     """Stacks fitted jointly (each with its light and, when `scale`, its own per-pixel scale)."""
+    lit: bool = eqx.field(static=True, default=False)
+    """Whether each pixel's `Lighting` corrects the reflectance (`_lighting.py`)."""
 
     def values(self, x):
         vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
         return jnp.stack(vals)
 
-    def model(self, x, view):
+    def model(self, x, view, lighting=None):
         """(ln y [stacks * bands], relative variance [stacks * bands]) at unconstrained x (scales
-        excluded): the reflectance, and with fluorophores in the layer their escaping fluorescence,
+        excluded): the reflectance (times the factor of the pixel's `lighting`, [L, 1 + 2 R], when
+        the problem is `lit`), and with fluorophores in the layer their escaping fluorescence,
         y_sk = P_sk rho_k + sum_j P_sj M_jk I_jk (P_s the light per band of stack s, M
         `PixelSpectra.conversion`), stack after stack."""
-        return self.predict(self.values(x), view)
+        return self.predict(self.values(x), view, lighting)
 
-    def predict(self, free, view):
+    def predict(self, free, view, lighting=None):
         """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
-        ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
+        ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view, lighting if self.lit else None)
         if self.light is None and not self.spectra.fluorophores:  # one stack under white light
             return ly, rel
         light = jnp.ones((self.stacks, mua.shape[0])) if self.light is None else jnp.asarray(self.light)
@@ -93,8 +97,8 @@ class Problem(eqx.Module):
         return jnp.log(safe).reshape(-1), (var / safe**2).reshape(-1)
 
     def residual(self, x, args):
-        y, var, use, view, prior_mean, prior_w = args
-        ly, rel = self.model(x, view)
+        y, var, use, view, lighting, prior_mean, prior_w = args
+        ly, rel = self.model(x, view, lighting)
         log_s = jnp.repeat(x[x.size - self.stacks:], y.size // self.stacks) if self.scale else 0.0
         pred = jnp.exp(log_s + ly)
         sigma2 = var + jax.lax.stop_gradient(pred**2 * rel)
@@ -127,12 +131,12 @@ def _solve_one(problem: Problem, x0, args, method: str, max_steps: int, rtol: fl
 
 
 @eqx.filter_jit
-def _solve_chunk(problem: Problem, x0, y, var, use, view, prior_mean, prior_w, *, method: str, max_steps: int,
-                 rtol: float, atol: float):
+def _solve_chunk(problem: Problem, x0, y, var, use, view, lighting, prior_mean, prior_w, *, method: str,
+                 max_steps: int, rtol: float, atol: float):
     """One chunk of pixels: `_solve_one` vmapped. Compiled once per problem structure and chunk shape
     (the tables and bases are traced arguments, so maps of other stacks reuse the program)."""
     return jax.vmap(lambda *a: _solve_one(problem, a[0], a[1:], method, max_steps, rtol, atol))(
-        x0, y, var, use, view, prior_mean, prior_w)
+        x0, y, var, use, view, lighting, prior_mean, prior_w)
 
 
 GN_STEPS = 7
@@ -302,9 +306,10 @@ def _stacks(measured, light, nb: int, wavelengths):
     return joined, np.stack([np.ones(nb) if li is None else li for li in lights])
 
 
-def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None):
-    """(Measurement, Problem, view weights [H*W, V]) for `map`; checks the inputs. Several stacks
-    are joined along the band axis (`_stacks`)."""
+def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None, lighting=None):
+    """(Measurement, Problem, view weights [H*W, V], lighting [H*W, L, 1 + 2 R]) for `map`; checks
+    the inputs. Several stacks are joined along the band axis (`_stacks`). Without `lighting` the
+    last is a placeholder [H*W, 1, 1] the problem does not read."""
     from ..scene import SpectralTissue
 
     if not isinstance(model, SpectralTissue):
@@ -321,7 +326,7 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None
     # `where` is only needed to read the initial values: a shared placeholder keeps the parameters
     # equal between calls, so that maps with the same structure reuse one compiled solver
     parameters = tuple(dataclasses.replace(p, where=_no_where) for p in free_parameters(model, free))
-    white = model_for_tissue(model) if white is None else white
+    white = model_for_tissue(model, lighting=lighting is not None) if white is None else white
     if not isinstance(white, WhiteModel):
         raise TypeError(f"white is a {type(white).__name__}; allowed a WhiteModel (tissuefit.maps.build_model)")
     spectra = PixelSpectra(model, parameters, lights)
@@ -329,17 +334,30 @@ def setup(measured, model, free, *, white=None, scale=True, view=1.0, light=None
         raise ValueError("model's top layer has a fluorophore but white was built without fluorescence tables; "
                          "build it with tissuefit.maps.build_model(..., fluorescence=True) or model_for_tissue(model)")
     stacks = m.shape[0] // nb
-    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale), lights, stacks)
     _, height, width = m.shape
+    if lighting is None:
+        lit = np.zeros((height * width, 1, 1))
+    else:
+        if not isinstance(lighting, Lighting):
+            raise TypeError(f"lighting is a {type(lighting).__name__}; allowed a tissuefit.maps.Lighting "
+                            "(tissuefit.maps.pixel_lighting(endoscope) makes one for an endoscope's camera)")
+        if lighting.shape != (height, width):
+            raise ValueError(f"lighting is for {lighting.shape} pixels; measured has {height} x {width}")
+        if not white.lit:
+            raise ValueError("lighting needs the white Monte Carlo model's lighting tables; build it with "
+                             "tissuefit.maps.build_model(..., lighting=True) or model_for_tissue(model, lighting=True)")
+        lit = np.ascontiguousarray(lighting.stacked().reshape(height * width, lighting.lights, -1))
+    problem = Problem(spectra, white, parameters, float(model.geometry.n[0]), bool(scale), lights, stacks,
+                      lighting is not None)
     cos = np.broadcast_to(np.asarray(view, np.float64), (height, width)) if view is not None else None
     vw = (view_weights(cos, white.cos_edges).reshape(height * width, -1) if cos is not None
           else np.broadcast_to(view_weights(None, white.cos_edges), (height * width, white.num_views)))
-    return m, problem, np.ascontiguousarray(vw)
+    return m, problem, np.ascontiguousarray(vw), lit
 
 
 @float64
 def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool = True, view=1.0, light=None,
-        smoothness: float | None = None, passes: int = 2, chunk: int = 256, max_steps: int = 100,
+        lighting=None, smoothness: float | None = None, passes: int = 2, chunk: int = 256, max_steps: int = 100,
         rtol: float = 1e-6, atol: float = 1e-8, progress=None) -> MapResult:
     """Per-pixel parameter maps of a measured stack (module docstring).
 
@@ -362,6 +380,11 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
       j and seen in band k scales with light[j], the reflectance in band k with light[k]: a PDD
       camera's violet light with red bands dark gives light [1, ..., 0, ...]. With several stacks a
       list, one entry per stack (None: white).
+    - `lighting`: a `Lighting` [H, W, lights]: how each pixel is lit when the light is not uniform
+      and normal (an endoscope's cone lights: `pixel_lighting(endoscope)`, which also gives `view`);
+      the reflectance is corrected for the irradiance's fall-off around the pixel and the light's
+      incidence (`_lighting.py`). Needs a model built with `lighting=True` (the default model is
+      then built so). None: uniform light at normal incidence, as under a wide beam.
     - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
       neighbours' mean (None: independent pixels); `passes` solves when it is on.
     - `chunk`: pixels per vmapped solve (memory: a 4096-pixel chunk of a PpIX map held ~3 GB);
@@ -376,7 +399,8 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     check_range("atol", atol, unit="-", low=0.0, low_open=True)
     if smoothness is not None:
         check_range("smoothness", smoothness, unit="unconstrained units", low=0.0, low_open=True)
-    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view, light=light)
+    m, problem, vw, lit = setup(measured, model, free, white=white, scale=scale, view=view, light=light,
+                                lighting=lighting)
     nb, height, width = m.shape
     npx = height * width
     y = np.ascontiguousarray(m.data.reshape(nb, -1).T)
@@ -397,7 +421,7 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
             prior_mean = _neighbour_mean(x, height, width, flags == 0)
             prior_w = np.zeros((npx, nx))
             prior_w[:, : len(problem.parameters)] = 1.0 / float(smoothness)
-        arrays = (x0, y, var, use, vw, prior_mean, prior_w)
+        arrays = (x0, y, var, use, vw, lit, prior_mean, prior_w)
         # Gauss-Newton over every pixel, then again from where it stopped over the pixels it did not converge
         # on; Levenberg-Marquardt (from the start) over the rest, gathered into chunks of their own (`_run`)
         t = time.perf_counter()
@@ -436,7 +460,9 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
                                    max_steps=int(max_steps), rtol=float(rtol), atol=float(atol),
                                    white=dict(g_nodes=list(problem.white.g_nodes), n_nodes=list(problem.white.n_nodes),
                                               photons=problem.white.photons, a_floor=problem.white.a_floor,
-                                              seed=problem.white.seed, fluorescence_photons=problem.white.fl_photons),
+                                              seed=problem.white.seed, fluorescence_photons=problem.white.fl_photons,
+                                              lighting_photons=problem.white.lit_photons),
+                                   lighting=None if lighting is None else dict(lights=lighting.lights),
                                    fluorophores=[f for f, _ in problem.spectra.fluorophores],
                                    stacks=problem.stacks,
                                    light=None if problem.light is None else
@@ -444,12 +470,13 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
 
 
 @float64
-def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, light=None, max_steps=100, rtol=1e-6,
-                  atol=1e-8):
+def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, light=None, lighting=None, max_steps=100,
+                  rtol=1e-6, atol=1e-8):
     """The reference: the same least squares, one pixel at a time (a Python loop of single-pixel
     optimistix solves, Gauss-Newton then Levenberg-Marquardt where it fails; no vmap, no chunks).
     Returns (values [P, H, W], sigma [P, H, W])."""
-    m, problem, vw = setup(measured, model, free, white=white, scale=scale, view=view, light=light)
+    m, problem, vw, lit = setup(measured, model, free, white=white, scale=scale, view=view, light=light,
+                                lighting=lighting)
     nb, height, width = m.shape
     y = m.data.reshape(nb, -1).T
     use = m.mask.reshape(nb, -1).T
@@ -461,7 +488,8 @@ def map_reference(measured, model, free, *, white=None, scale=True, view=1.0, li
     gn = jax.jit(lambda x, *a: _solve_one(problem, x, a, "gn", GN_STEPS, rtol, atol))
     lm = jax.jit(lambda x, *a: _solve_one(problem, x, a, "lm", max_steps, rtol, atol))
     for i in range(height * width):
-        args = (jnp.asarray(y[i]), jnp.asarray(var[i]), jnp.asarray(use[i]), jnp.asarray(vw[i]), jnp.zeros(nx), jnp.zeros(nx))
+        args = (jnp.asarray(y[i]), jnp.asarray(var[i]), jnp.asarray(use[i]), jnp.asarray(vw[i]), jnp.asarray(lit[i]), jnp.zeros(nx),
+                jnp.zeros(nx))
         out = gn(jnp.asarray(x0[i]), *args)
         for _ in range(GN_ROUNDS - 1):
             if not bool(out[5]) and np.all(np.isfinite(np.asarray(out[2]))):

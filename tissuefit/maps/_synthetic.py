@@ -11,25 +11,25 @@ from ._solve import setup
 
 
 @float64
-def model_stack(model, free, values, *, white=None, scale=None, view=1.0, light=None) -> np.ndarray:
+def model_stack(model, free, values, *, white=None, scale=None, view=1.0, light=None, lighting=None) -> np.ndarray:
     """The model's stack [bands, H, W]: the top layer of `model` (a SpectralTissue) with the free
     parameters `free` at `values` [P, H, W] (natural units), times `scale` [H, W] (default 1), seen
-    at viewing cosine `view`."""
+    at viewing cosine `view`, lit as `lighting` (a `Lighting` [H, W, lights]; None: uniform, normal)."""
     from ..fit import Measurement
 
     values = np.asarray(values, np.float64)
     p, height, width = values.shape
     nb = model.bands.num_bands
     dummy = Measurement(np.ones((nb, height, width)), np.ones((nb, height, width)))
-    _, problem, vw = setup(dummy, model, free, white=white, scale=False, view=view, light=light)
+    _, problem, vw, lit = setup(dummy, model, free, white=white, scale=False, view=view, light=light, lighting=lighting)
     if p != len(problem.parameters):
         raise ValueError(f"values has {p} maps for {len(problem.parameters)} free parameters")
     flat = values.reshape(p, -1).T
 
-    def one(v, w):
-        return jnp.exp(problem.predict(v, w)[0])
+    def one(v, w, li):
+        return jnp.exp(problem.predict(v, w, li)[0])
 
-    out = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(flat), jnp.asarray(vw))).T.reshape(nb, height, width)
+    out = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(flat), jnp.asarray(vw), jnp.asarray(lit))).T.reshape(nb, height, width)
     return out if scale is None else out * np.asarray(scale, np.float64)
 
 
