@@ -248,8 +248,9 @@ def plot(args, res, f_true, s_true, tag) -> None:
             ax[row, col].set_yticks([])
             fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
     what = "cone lights / white reference" + (", lighting-corrected model" if args.lighting else "")
-    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}, camera peak "
-                 f"{args.peak_counts:g} counts (blood fraction and saturation are dimensionless)", fontsize=10)
+    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}\n"
+                 f"camera peak {args.peak_counts:g} counts (blood fraction and saturation are dimensionless; white: flagged)",
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(HERE / f"validate_{tag}.png", dpi=100)
 

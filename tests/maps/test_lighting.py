@@ -131,6 +131,11 @@ def test_map_under_the_cone_lights_needs_the_lighting(white_lit, white):
     flat = model_stack(mucosa(), free, truth, white=white_lit, view=view)
     tilt = np.log(stack / flat)
     assert np.ptp(tilt.mean((1, 2))) > 0.03  # the lights change the spectrum's shape, not only its level
+    # a stack of media [bands, H, W] against the pixels' lighting [H, W, lights] broadcasts per pixel
+    mua, mus = np.full((3, 4, 5), 0.2) * np.array([1.0, 3.0, 10.0])[:, None, None], np.full((3, 4, 5), 150.0)
+    rho, _ = white_lit.reflectance(mua, mus, 0.9, 1.4, lighting=lighting)
+    one, _ = white_lit.reflectance(mua[:, 2, 3], mus[:, 2, 3], 0.9, 1.4, lighting=lighting.stacked()[2, 3])
+    np.testing.assert_allclose(np.asarray(rho)[:, 2, 3], np.asarray(one), rtol=1e-12)
     m = Measurement(stack, (1e-3 * stack) ** 2)
     lit = map_stack(m, mucosa(), free, white=white_lit, view=view, lighting=lighting, chunk=8)
     np.testing.assert_allclose(lit["blood_fraction"], 0.03, rtol=2e-3)

@@ -231,6 +231,8 @@ def node_factor(q0, q1, mua, mus, g_node: float, g, lighting, *, log_a=LOG_A_L, 
     r = jnp.log10(jnp.asarray(rho_centres(edges)) / jnp.maximum(mus * (1.0 - g), 1e-30)[..., None])
     ir, sr = _cell(r, radii)
     nr = int(radii[2])
+    batch = jnp.broadcast_shapes(ir.shape[:-1], light.shape[:-2])  # the medium's shape against the pixels'
+    ir, sr = jnp.broadcast_to(ir, batch + ir.shape[-1:]), jnp.broadcast_to(sr, batch + sr.shape[-1:])
     step = angles[1] - angles[0]
     total = 0.0
     for l in range(light.shape[-2]):  # noqa: E741
@@ -243,7 +245,7 @@ def node_factor(q0, q1, mua, mus, g_node: float, g, lighting, *, log_a=LOG_A_L, 
             return (1 - st)[..., None] * lo + st[..., None] * hi
 
         def ring(m, l=l):  # [..., K]: the ring mean m at the bins' radii
-            e = jnp.broadcast_to(light[..., l, 1 + m * nr:1 + (m + 1) * nr], ir.shape[:-1] + (nr,))
+            e = jnp.broadcast_to(light[..., l, 1 + m * nr:1 + (m + 1) * nr], batch + (nr,))
             return (1 - sr) * jnp.take_along_axis(e, ir, -1) + sr * jnp.take_along_axis(e, ir + 1, -1)
 
         total = total + jnp.sum(read(q0) * ring(0) + 2.0 * read(q1) * ring(1), -1)
