@@ -92,3 +92,29 @@ def test_two_stacks_end_to_end(tmp_path, capsys, white):
     assert doc["summary"]["light"] == ["white", "white"]
     assert np.allclose(layers[2], layers[3], rtol=1e-6)
     assert np.median(np.abs(layers[0] / truth[0] - 1)) < 0.15
+
+
+@pytest.mark.slow
+def test_lighting_endoscope_end_to_end(tmp_path, capsys):
+    """`--lighting endoscope`: the scene file's camera and cone lights set each pixel's view and lighting."""
+    from tissuefit.maps import build_model, pixel_lighting
+    from tissuefit.render import Endoscope
+
+    text = Path(FIT_DEMO).read_text().replace("width = 24", "width = 4").replace("height = 24", "height = 3")
+    scene = tmp_path / "scene.toml"
+    scene.write_text(text)
+    white = build_model((0.9,), (1.4,), photons=4000, seed=5, lighting=True, cache=False)
+    view, lighting = pixel_lighting(Endoscope(width=4, height=3))
+    truth = np.stack([np.full((3, 4), 0.03), np.full((3, 4), 0.8)])
+    clean = model_stack(mucosa(), ["blood_fraction", "saturation"], truth, white=white, view=view, lighting=lighting)
+    stack = io.make_stack(1e4 * clean, wavelengths=DEFAULT_BANDS.wavelengths, widths=np.full(21, 16.0), kind="measured",
+                          units="counts", noise={"a": 1.0, "b": 0.0})
+    io.write_stack(tmp_path / "m.tif", stack)
+    status = main(["map", str(tmp_path / "m.json"), "--scene", str(scene), "--free", "blood_fraction,saturation",
+                   "--lighting", "endoscope", "--out", str(tmp_path / "out"), "--model-photons", "4000",
+                   "--model-seed", "5", "--no-register"])
+    out = capsys.readouterr().out
+    assert status == 0, out
+    doc, layers = read_maps(tmp_path / "out" / "maps.json")
+    assert doc["summary"]["lighting"] == "endoscope"
+    np.testing.assert_allclose(layers[0], 0.03, rtol=0.01)  # noise-free counts: the truth
