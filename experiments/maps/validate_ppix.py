@@ -13,9 +13,12 @@ the exposure divided out; residual variance = camera noise + the render's own va
 Free per pixel: c_ppix, saturation and the scale (blood fraction, a, b known), light = the LED's
 band powers. Reported: median relative error of c_ppix and the fraction within 2 sigma, in the
 lesion and the mucosa, >= 0.1 cm from the lesion's edge and near it. Writes
-results_validate_ppix_<width>px[_homogeneous][_cone].json and validate_ppix_<width>px[_homogeneous][_cone].png.
+results_validate_ppix_<width>px[_homogeneous][_cone][_lit].json and validate_ppix_<...>.png.
+`--lighting` (with `--cone-lights`): the map with each pixel's `Lighting` (tissuefit.maps.pixel_lighting),
+the uniform model's map kept beside it ("uniform"); region averages then use the pixels' lighting
+averaged with the fitted scale's weights.
 
-    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16] [--homogeneous] [--cone-lights]
+    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16] [--homogeneous] [--cone-lights [--lighting]]
 """
 
 from __future__ import annotations
@@ -50,10 +53,21 @@ def main() -> None:
     ap.add_argument("--cone-lights", action="store_true",
                     help="the endoscope's two cone lights instead of the floodlight (oblique light falling off across "
                          "the field; the LED's spectrum is the same everywhere, so the per-pixel scale takes the irradiance)")
+    ap.add_argument("--lighting", action="store_true", help="(with --cone-lights) map with each pixel's Lighting too")
     args = ap.parse_args()
+    if args.lighting and not args.cone_lights:
+        ap.error("--lighting corrects for the cone lights: give --cone-lights too")
     tissuefit.configure()
     from tissuefit.fit import Measurement
-    from tissuefit.maps import VIOLET_FWHM_NM, band_exposure, map as map_stack, model_for_tissue, violet_light
+    from tissuefit.maps import (
+        VIOLET_FWHM_NM,
+        Lighting,
+        band_exposure,
+        map as map_stack,
+        model_for_tissue,
+        pixel_lighting,
+        violet_light,
+    )
     from tissuefit.render import Endoscope, Floodlight, RenderOptions, render
     from tissuefit.scene import Box, SpectralTissue, violet_led
 
@@ -86,16 +100,24 @@ def main() -> None:
     light = violet_light(tissue.bands)  # the band powers of `led`, peak 1
     model_tissue = pdd_mucosa(c=1.0)
     t = time.perf_counter()
-    white = model_for_tissue(model_tissue, photons=50_000)
+    white = model_for_tissue(model_tissue, photons=50_000, lighting=args.lighting)
     model_s = time.perf_counter() - t
+    lighting = pixel_lighting(e)[1] if args.lighting else None
     res = map_stack(Measurement(data, var), model_tissue, ["saturation", "c_ppix"], white=white, view=cosv, light=light,
-                    chunk=1024)
+                    lighting=lighting, chunk=1024)
+    uniform = None
+    if args.lighting:
+        uniform = map_stack(Measurement(data, var), model_tissue, ["saturation", "c_ppix"], white=white, view=cosv,
+                            light=light, chunk=1024)
     good = res.flags == 0
     c, s = res["c_ppix"], res.sigma[res.names.index("c_ppix")]
-    rel = c / c_true - 1
     z = (c - c_true) / s
 
-    def stats(sel):
+    def stats(sel, res=res):
+        good = res.flags == 0
+        c, s = res["c_ppix"], res.sigma[res.names.index("c_ppix")]
+        rel = c / c_true - 1
+        z = (c - c_true) / s
         sel = sel & good
         if not sel.any():
             return dict(pixels=0)
@@ -115,8 +137,13 @@ def main() -> None:
         k = int(sel.sum())
         d = data[:, sel].mean(1)[:, None, None]
         v = var[:, sel].mean(1)[:, None, None] / k
+        average = None
+        if lighting is not None:  # the ring means are linear in the irradiance: weigh each pixel by its scale
+            w = res["scale"][sel] / res["scale"][sel].sum()
+            average = Lighting((w[:, None] * lighting.incidence_deg[sel]).sum(0)[None, None],
+                               (w[:, None, None, None] * lighting.ring[sel]).sum(0)[None, None])
         one = map_stack(Measurement(d, v), model_tissue, ["saturation", "c_ppix"], white=white, view=float(np.median(cosv[sel])),
-                        light=light)
+                        light=light, lighting=average)
         return dict(pixels=k, c=float(one["c_ppix"][0, 0]), c_sigma=float(one.sigma[one.names.index("c_ppix")][0, 0]),
                     saturation=float(one["blood_saturation"][0, 0]), reduced_chi2=float(one.reduced_chi2[0, 0]))
 
@@ -124,9 +151,13 @@ def main() -> None:
                map_seconds=res.seconds, flagged=int((~good).sum()), c_lesion=C_LESION, c_mucosa=C_MUCOSA,
                lesion_far=stats(inside & far), mucosa_far=stats(~inside & far), near_edge=stats(~far),
                median_red_snr=float(np.median(raw[13:] / np.sqrt(np.maximum(rvar[13:], 1e-300)))),
-               region_average=dict(lesion=region(inside & far), mucosa=region(~inside & far)))
+               region_average=dict(lesion=region(inside & far), mucosa=region(~inside & far)), lighting=bool(args.lighting))
+    if uniform is not None:
+        out["uniform"] = dict(lesion_far=stats(inside & far, uniform), mucosa_far=stats(~inside & far, uniform),
+                              near_edge=stats(~far, uniform))
     print(json.dumps(out, indent=2))
-    tag = f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_cone" if args.cone_lights else "")
+    tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_cone" if args.cone_lights else "")
+           + ("_lit" if args.lighting else ""))
     (HERE / f"results_validate_ppix_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
     import matplotlib
 

@@ -39,5 +39,5 @@ def pdd_mucosa(c_ppix=1.0):
 def white_fluorescent(tmp_path_factory):
     from tissuefit.maps import build_model
 
-    return build_model((0.9,), (1.4,), photons=PHOTONS, fluorescence=FLUORESCENCE_PHOTONS, seed=5,
+    return build_model((0.9,), (1.4,), photons=PHOTONS, fluorescence=FLUORESCENCE_PHOTONS, seed=5, lighting=True,
                        cache=tmp_path_factory.mktemp("white_fluorescent"))

@@ -126,6 +126,28 @@ def test_ppix_map_under_violet_light(white_fluorescent):
     assert res.settings["fluorophores"] == ["c_collagen", "c_ppix"]
 
 
+def test_ppix_map_under_the_cone_lights(white_fluorescent):
+    """With each pixel's lighting a PDD stack made under the endoscope's lights maps back to its c_ppix
+    (noise-free); the uniform model reads it differently (the red fluorescence spreads further than
+    the violet light that excites it, over a falling irradiance)."""
+    from tissuefit.fit import Measurement
+    from tissuefit.maps import map as map_stack, model_stack, pixel_lighting, violet_light
+    from tissuefit.render import Endoscope
+
+    tissue = pdd_mucosa()
+    light = violet_light(tissue.bands)
+    view, lighting = pixel_lighting(Endoscope(width=4, height=3))
+    truth = np.stack([np.full((3, 4), 0.7), np.full((3, 4), 2.0)])
+    y = model_stack(tissue, ["saturation", "c_ppix"], truth, white=white_fluorescent, light=light, view=view,
+                    lighting=lighting)
+    m = Measurement(y, (1e-3 * y) ** 2 + 1e-30)
+    lit = map_stack(m, tissue, ["saturation", "c_ppix"], white=white_fluorescent, light=light, view=view,
+                    lighting=lighting)
+    np.testing.assert_allclose(lit["c_ppix"], 2.0, rtol=2e-3)
+    uniform = map_stack(m, tissue, ["saturation", "c_ppix"], white=white_fluorescent, light=light, view=view)
+    assert np.max(np.abs(uniform["c_ppix"] / 2.0 - 1)) > 0.01
+
+
 def test_fluorophores_need_fluorescence_tables(white):
     from tissuefit.fit import Measurement
     from tissuefit.maps import map as map_stack

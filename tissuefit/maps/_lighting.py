@@ -29,8 +29,10 @@ Under uniform normal light F = 1. With a free per-pixel scale only F's change ac
 matters: long diffusion lengths (red) sample more of the falling irradiance and of the oblique
 light's lean. `Lighting.from_illumination` takes the ring means from a render's illumination,
 `pixel_lighting` for an endoscope's camera; `factor_by_convolution` sums the traced paths against
-the irradiance itself, the reference `node_factor` is tested against. The fluorescence model is not
-corrected (its lateral spread is not tabulated).
+the irradiance itself, the reference `node_factor` is tested against. The fluorescence escaping in
+band k is multiplied by band k's F (`_solve.Problem.predict`): an approximation that takes the
+emission's lateral spread for the reflectance's in its band (the excitation's, in the violet, is
+short); its error is measured against renders (experiments/maps/RESULTS.md, 4c'').
 """
 
 from __future__ import annotations

@@ -79,7 +79,13 @@ class Problem(eqx.Module):
     def predict(self, free, view, lighting=None):
         """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
-        ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view, lighting if self.lit else None)
+        ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
+        # the lights' fall-off and incidence: the reflectance's factor per band, the fluorescence escaping
+        # in band k given band k's (its lateral spread taken as the reflectance's there; _lighting.py)
+        # (the candidates' table for the start leaves it out: lighting None)
+        ln_f = (self.white.log_lighting(mua, mus, g, self.n, lighting) if self.lit and lighting is not None
+                else jnp.zeros_like(ly))
+        ly = ly + ln_f
         if self.light is None and not self.spectra.fluorophores:  # one stack under white light
             return ly, rel
         light = jnp.ones((self.stacks, mua.shape[0])) if self.light is None else jnp.asarray(self.light)
@@ -89,7 +95,7 @@ class Problem(eqx.Module):
         j, k = (np.asarray(p, np.int32) for p in pairs)
         into = jnp.asarray(np.eye(mua.shape[0])[k])  # [P, bands]: pair p lands in band k_p
         ln_i, rel_i = self.white.log_fluorescence(mua, mus, g, self.n, view, pairs)
-        terms = light[:, j] * (self.spectra.conversion(free) * jnp.exp(ln_i))  # [stacks, P]
+        terms = light[:, j] * (self.spectra.conversion(free) * jnp.exp(ln_i + ln_f[k]))  # [stacks, P]
         rho = light * jnp.exp(ly)
         total = rho + terms @ into
         var = rho**2 * rel + (terms**2 * rel_i) @ into
