@@ -196,7 +196,7 @@ class WhiteModel(eqx.Module):
 
     def log_lighting(self, mua, mus, g, n, lighting):
         """ln F [...]: the factor by which light that is oblique and not uniform (`lighting`
-        [..., L, 5], `_lighting.Lighting.stacked`) changes the reflectance at mua, mus [1/cm] [...]
+        [..., L, 1 + 2 R], `_lighting.Lighting.stacked`) changes the reflectance at mua, mus [1/cm] [...]
         (`_lighting.py`), interpolated over the nodes like ln R. Differentiable in mua, mus, g, n."""
         if not self.lit:
             raise ValueError("this WhiteModel was built without lighting tables (build_model(lighting=True))")
@@ -209,11 +209,10 @@ class WhiteModel(eqx.Module):
                 out = out + wg[i] * wn[j] * jnp.log(jnp.maximum(f, TINY))
         return out
 
-    def log_reflectance(self, mua, mus, g, n, view, lighting=None):
+    def log_reflectance(self, mua, mus, g, n, view):
         """(ln rho, relative variance) at mua, mus [1/cm] (same shape [...]), scalars g, n, and
-        `view` [..., V] or [V] (`view_weights`); `lighting` ([..., L, 5], `Lighting.stacked`, or
-        None: uniform light at normal incidence) multiplies rho by `log_lighting`'s factor.
-        Differentiable in mua, mus, g, n."""
+        `view` [..., V] or [V] (`view_weights`), under uniform light at normal incidence
+        (`log_lighting` gives the factor of other light). Differentiable in mua, mus, g, n."""
         a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30)
         wg = hermite_weights(self.g_nodes, g)
         wn = hermite_weights(self.n_nodes, n)
@@ -228,8 +227,6 @@ class WhiteModel(eqx.Module):
                 w = wg[i] * wn[j]
                 out = out + w * ly
                 rel = rel + w**2 * rv
-        if lighting is not None:
-            out = out + self.log_lighting(mua, mus, g, n, lighting)
         return out, rel
 
     def log_fluorescence(self, mua, mus, g, n, view, pairs):
@@ -262,6 +259,9 @@ class WhiteModel(eqx.Module):
         v = view_weights(None, self.cos_edges) if view is None else view
         if isinstance(lighting, _lighting.Lighting):
             lighting = lighting.stacked()
-        ly, rel = self.log_reflectance(jnp.asarray(mua), jnp.asarray(mus), g, n, v, lighting)
+        mua, mus = jnp.asarray(mua), jnp.asarray(mus)
+        ly, rel = self.log_reflectance(mua, mus, g, n, v)
+        if lighting is not None:
+            ly = ly + self.log_lighting(mua, mus, g, n, lighting)
         rho = jnp.exp(ly)
         return rho, rho * jnp.sqrt(rel)
