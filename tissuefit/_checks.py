@@ -62,21 +62,21 @@ def check_range(
     allowed = f"{'(' if low_open or low is None else '['}{lo_txt}, {hi_txt}{')' if high_open or high is None else ']'}"
     unit_txt = "" if unit == "-" else f" {unit}"
     arr = float_array(field, value, allowed=allowed + unit_txt, what="a number")
-    for index, v in np.ndenumerate(arr):
+    with np.errstate(invalid="ignore"):
+        bad = np.isnan(arr) | (np.isinf(arr) & ~((arr > 0) & allow_inf))
+        finite = np.isfinite(arr)
+        if low is not None:
+            bad |= finite & ((arr < low) | ((arr == low) & low_open))
+        if high is not None:
+            bad |= finite & ((arr > high) | ((arr == high) & high_open))
+    if bad.any():  # the first offending element, named by its index
+        index = np.unravel_index(int(np.argmax(bad)), arr.shape)
+        v = float(arr[index])
         name = field if arr.ndim == 0 else f"{field}[{', '.join(map(str, index))}]"
-        bad = math.isnan(v)
-        if math.isinf(v) and not (allow_inf and v > 0):
-            bad = True
-        elif not math.isinf(v):
-            if low is not None and (v < low or (low_open and v == low)):
-                bad = True
-            if high is not None and (v > high or (high_open and v == high)):
-                bad = True
-        if bad:
-            raise ValueError(
-                f"{name} = {v:g}{unit_txt} is out of range; allowed {allowed}{unit_txt}"
-                + (" (inf allowed)" if allow_inf else "")
-            )
+        raise ValueError(
+            f"{name} = {v:g}{unit_txt} is out of range; allowed {allowed}{unit_txt}"
+            + (" (inf allowed)" if allow_inf else "")
+        )
 
 
 def float_array(field: str, value, *, allowed: str, what: str = "a number or a list of numbers") -> np.ndarray:
