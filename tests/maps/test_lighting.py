@@ -5,6 +5,7 @@ the cone lights' geometry, and maps of stacks made under the endoscope's lights.
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -74,6 +75,36 @@ def test_uniform_normal_light_leaves_the_reflectance_unchanged(traced):
     assert got == pytest.approx(x.sum() / x0.sum(), rel=0.01)  # the a grid is 0.1 decade
 
 
+def test_pixel_table_reads_the_direct_factor(traced):
+    # the solver's path (one table per pixel, read bilinearly) against node_factor: the same linear
+    # interpolations in another order, so equal to the table's float32 rounding, with their
+    # derivatives, wherever mus' is within the table's grid (0.1-10^4 / cm)
+    tables = _lighting.tabulate_lighting(traced)
+    q0, q1 = tables["q0"], tables["q1"]
+    _, lighting = pixel_lighting(Endoscope(beta_deg=30.0, distance=0.8, width=4, height=3))
+    light = jnp.asarray(lighting.stacked().reshape(12, lighting.lights, -1))
+    rng = np.random.default_rng(7)
+    mua, mus = 10.0 ** rng.uniform(-2.0, 2.0, (12, 21)), 10.0 ** rng.uniform(0.0, 3.5, (12, 21))
+    table = _lighting.lighting_table(q0, q1, light)
+    assert table.shape == (12, _lighting.LOG_A_L[2], _lighting.LOG_MUS[2])
+    for p in range(12):
+        def direct(m, s, p=p):
+            return _lighting.node_factor(q0, q1, m, s, 0.85, 0.8, light[p])
+
+        def fast(m, s, p=p):
+            return _lighting.read_factor(table[p], m, s, 0.85, 0.8, cubic=False)
+
+        np.testing.assert_allclose(fast(mua[p], mus[p]), direct(mua[p], mus[p]), rtol=1e-6)
+        for arg in (0, 1):  # differences of table entries: their float32 rounding against the largest
+            want = jax.jacfwd(lambda *a: jnp.sum(direct(*a)), arg)(mua[p], mus[p])
+            np.testing.assert_allclose(jax.jacfwd(lambda *a: jnp.sum(fast(*a)), arg)(mua[p], mus[p]), want,
+                                       rtol=1e-4, atol=1e-4 * float(np.abs(want).max()))
+    # a batch of tables against a batch of media of one more leading axis (bands of an image)
+    np.testing.assert_allclose(_lighting.read_factor(table, mua.T, mus.T, 0.85, 0.8, cubic=False),
+                               jax.vmap(lambda m, s, l: _lighting.node_factor(q0, q1, m, s, 0.85, 0.8, l), (1, 1, 0), 1)(
+                                   mua.T, mus.T, light), rtol=1e-6)
+
+
 def test_ring_means_follow_the_cone_lights_geometry():
     e = Endoscope(beta_deg=0.0, distance=1.0)
     _, _, _, centres = e.frame()
@@ -135,7 +166,7 @@ def test_map_under_the_cone_lights_needs_the_lighting(white_lit, white):
     mua, mus = np.full((3, 4, 5), 0.2) * np.array([1.0, 3.0, 10.0])[:, None, None], np.full((3, 4, 5), 150.0)
     rho, _ = white_lit.reflectance(mua, mus, 0.9, 1.4, lighting=lighting)
     one, _ = white_lit.reflectance(mua[:, 2, 3], mus[:, 2, 3], 0.9, 1.4, lighting=lighting.stacked()[2, 3])
-    np.testing.assert_allclose(np.asarray(rho)[:, 2, 3], np.asarray(one), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(rho)[:, 2, 3], np.asarray(one), rtol=1e-6)  # the tables' float32 sums
     m = Measurement(stack, (1e-3 * stack) ** 2)
     lit = map_stack(m, mucosa(), free, white=white_lit, view=view, lighting=lighting, chunk=8)
     np.testing.assert_allclose(lit["blood_fraction"], 0.03, rtol=2e-3)

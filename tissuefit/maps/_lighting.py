@@ -25,6 +25,15 @@ grid of log10 a, read at equal a' = mua / mus' like the reflectance. The m = 2 h
 p's differs from zero only at oblique incidence and by a few per cent (the offsets' spread along u
 and across it), E's only where the irradiance curves differently along and across u.
 
+Evaluated so per band, F costs some 50 gathers of K-vectors per light, and a per-pixel fit evaluates
+it hundreds of times. But a pixel's lighting is fixed during its fit, and F is linear in its tables:
+with the bins' radii on the ring's grid (`RHO_EDGES`), F over a grid of (log10 a', log10 mus')
+(`LOG_A_L` x `LOG_MUS`) is one matrix product of the pixel's incidence weights and ring means
+(`pixel_vector`, T x 2 x R values) with a basis made of the node's tables (`lighting_basis`), and F
+at any medium is that table's bilinear interpolation (`read_factor`): exactly `node_factor`'s value
+(the same linear interpolations, in a different order), at a tenth of its cost per pixel once, and
+a few hundred times less per evaluation.
+
 Under uniform normal light F = 1. With a free per-pixel scale only F's change across the bands
 matters: long diffusion lengths (red) sample more of the falling irradiance and of the oblique
 light's lean. `Lighting.from_illumination` takes the ring means from a render's illumination,
@@ -50,15 +59,23 @@ INCIDENCE_DEG = (0.0, 20.0, 40.0, 60.0, 80.0)
 """Incidence angles [deg, in air, evenly spaced] of the lighting traces; linear between them."""
 LOG_A_L = (-6.0, 3.0, 91)
 """Grid of log10 a of the lighting tables (0.1 decade; linear between nodes)."""
-RHO_EDGES = (0.0, *np.logspace(-2.0, 2.5, 55).tolist())
-"""Bins of the exit offset rho [1 / mus'] (0, then 12 per decade from 0.01 to 316); the last bin
-takes every longer offset. With 6 per decade the factor moved by up to 0.6 % (`factor_by_convolution`
-on a 0.3 cm wide beam), with 24 by 0.1 % more."""
+RHO_EDGES = (0.0, *(10.0 ** (np.arange(48) * 0.1 - 2.05)).tolist())
+"""Bins of the exit offset rho [1 / mus']: from 0 to 10^-2.05, then 10 per decade (centres 10^-2 to
+10^2.6); the last takes every longer offset. Their centres (`rho_centres`) lie on the spacing of the ring
+radii (`RADII`), so that for any mus' all bins fall on the radius grid at one common fraction: the
+factor is then linear in log10 mus' between the nodes of `LOG_MUS`, and a pixel's factor over a
+grid of (a', mus') is one matrix product (`lighting_table`). With 6 bins per decade instead of 12
+the factor moved by up to 0.6 % (`factor_by_convolution` on a 0.3 cm wide beam), with 24 by 0.1 %
+more."""
 RADII = (-3.0, 1.0, 41)
 """Grid of log10 r [cm] of the ring means (10 per decade from 10 um to 10 cm; linear in log r
 between, clamped outside: within 10 um of the pixel the irradiance is its own to ~1e-3)."""
 AZIMUTHS = 12
 """Points per ring of the ring means (exact for harmonics below 11)."""
+LOG_MUS = (-1.0, 4.0, 51)
+"""Grid of log10 mus' [1/cm] of a pixel's factor table (`lighting_table`; on the radii's spacing, so
+that the table is exact at its nodes and the factor linear between them). Outside 0.1-10^4 / cm the
+factor is held at the nearest edge's value (tissue's mus' is 1-100 / cm)."""
 
 
 def _grid(spec) -> np.ndarray:
@@ -66,10 +83,10 @@ def _grid(spec) -> np.ndarray:
 
 
 def rho_centres(edges=RHO_EDGES) -> np.ndarray:
-    """The radius each bin of `edges` is read at: the geometric mean of its edges (half the first
-    edge for the bin from 0)."""
+    """The radius each bin of `edges` is read at: the geometric mean of its edges, and for the bin
+    from 0 one log step (that between the next two edges) below the next bin's."""
     e = np.asarray(edges, np.float64)
-    return np.concatenate([[0.5 * e[1]], np.sqrt(e[1:-1] * e[2:])])
+    return np.concatenate([[np.sqrt(e[1] ** 3 / e[2])], np.sqrt(e[1:-1] * e[2:])])
 
 
 def tabulate_lighting(traced: list[dict], *, log_a=LOG_A_L, edges=RHO_EDGES) -> dict:
@@ -161,38 +178,19 @@ class Lighting(eqx.Module):
     @classmethod
     def from_illumination(cls, illumination, points, *, chunk: int = 4096) -> Lighting:
         """Per surface point (`points` [..., 2] or [..., 3], cm, on z = 0) from a render
-        illumination (`tissuefit.render.ConeLights`, `Floodlight`: anything with
+        illumination (`tissuefit.render.ConeLights`, `Floodlight`: anything with a JAX-traceable
         `irradiance(points [n, 3]) -> (E [lights, n], direction of incidence [lights, n, 3])`):
-        the ring means from `AZIMUTHS` points on each ring. A point no light reaches gets uniform
-        normal light (F = 1)."""
+        the ring means from `AZIMUTHS` points on each ring (`_ring_means`). A point no light
+        reaches gets uniform normal light (F = 1)."""
         p = np.asarray(points, np.float64)
         shape = p.shape[:-1]
         xy = p.reshape(-1, p.shape[-1])[:, :2]
-        radii = 10.0 ** _grid(RADII)
-        phi = 2 * np.pi * (np.arange(AZIMUTHS) + 0.5) / AZIMUTHS
         thetas, rings = [], []
         for lo in range(0, xy.shape[0], chunk):
             q = xy[lo:lo + chunk]
-            e0, d = (np.asarray(v, np.float64) for v in illumination.irradiance(_surface(q)))
-            total = e0.sum(0)
-            lit = total > 0
-            horiz = d[..., :2]
-            norm = np.linalg.norm(horiz, axis=-1, keepdims=True)
-            u = np.where(norm > 1e-12, horiz / np.maximum(norm, 1e-300), np.array([1.0, 0.0]))  # [L, n, 2]
-            v = np.stack([-u[..., 1], u[..., 0]], -1)
-            # entry points x0 - r (cos phi u + sin phi v) [L, n, R, M, 2]
-            off = radii[:, None, None] * (np.cos(phi)[None, :, None] * u[:, :, None, None, :]
-                                          + np.sin(phi)[None, :, None] * v[:, :, None, None, :])
-            ring = np.zeros(e0.shape + (2, radii.size))
-            for l in range(e0.shape[0]):  # noqa: E741
-                pts = (q[:, None, None, :] - off[l]).reshape(-1, 2)
-                e = np.asarray(illumination.irradiance(_surface(pts))[0][l], np.float64).reshape(q.shape[0], radii.size, -1)
-                ring[l, :, 0] = e.mean(-1)
-                ring[l, :, 1] = (e * np.cos(phi)).mean(-1)
-            ring = np.where(lit[None, :, None, None], ring / np.where(lit, total, 1.0)[None, :, None, None], 0.0)
-            ring[0, :, 0] = np.where(lit[:, None], ring[0, :, 0], 1.0)
-            theta = np.degrees(np.arccos(np.clip(np.abs(d[..., 2]), 0.0, 1.0)))
-            thetas.append(np.where(lit[None], np.minimum(theta, 89.9), 0.0))
+            pad = np.concatenate([q, np.repeat(q[-1:], chunk - q.shape[0], 0)]) if xy.shape[0] > chunk else q
+            theta, ring = (np.asarray(a)[:, : q.shape[0]] for a in _ring_means(illumination, jnp.asarray(pad)))
+            thetas.append(theta)
             rings.append(ring)
         theta = np.concatenate(thetas, 1)
         ring = np.concatenate(rings, 1)
@@ -200,8 +198,37 @@ class Lighting(eqx.Module):
                    np.moveaxis(ring, 0, 1).reshape(shape + ring.shape[:1] + ring.shape[2:]))
 
 
-def _surface(xy: np.ndarray):
-    return jnp.asarray(np.concatenate([xy, np.zeros((xy.shape[0], 1))], 1))
+@eqx.filter_jit
+def _ring_means(illumination, xy):
+    """(incidence [L, n] deg, ring means [L, n, 2, R]) at the surface points `xy` [n, 2] (cm). The
+    rings' points are the same for every light, at angles psi from the x axis (one irradiance
+    call for all lights); the first harmonic about light l's azimuth phi_l is then cos phi_l
+    mean(E cos psi) + sin phi_l mean(E sin psi), since cos(psi - phi_l) is what it weighs (exact
+    like the ring's sum for the irradiance's harmonics below `AZIMUTHS` - 1)."""
+    radii = jnp.asarray(10.0 ** _grid(RADII), xy.dtype)
+    psi = jnp.asarray(2 * np.pi * (np.arange(AZIMUTHS) + 0.5) / AZIMUTHS, xy.dtype)
+    e0, d = illumination.irradiance(_surface(xy))  # [L, n], [L, n, 3]
+    total = e0.sum(0)
+    lit = total > 0
+    horiz = d[..., :2]
+    norm = jnp.linalg.norm(horiz, axis=-1)
+    phi_l = jnp.where(norm > 1e-12, jnp.arctan2(horiz[..., 1], horiz[..., 0]), 0.0)  # [L, n]
+    # entry points x0 - r e_psi [n, R, M, 2]
+    off = radii[:, None, None] * jnp.stack([jnp.cos(psi), jnp.sin(psi)], -1)[None]
+    pts = (xy[:, None, None, :] - off[None]).reshape(-1, 2)
+    e = illumination.irradiance(_surface(pts))[0].reshape(e0.shape[0], xy.shape[0], radii.size, -1)  # [L, n, R, M]
+    mean0 = e.mean(-1)
+    c, s = (e * jnp.cos(psi)).mean(-1), (e * jnp.sin(psi)).mean(-1)
+    mean1 = jnp.cos(phi_l)[..., None] * c + jnp.sin(phi_l)[..., None] * s
+    ring = jnp.stack([mean0, mean1], -2) / jnp.where(lit, total, 1.0)[None, :, None, None]  # [L, n, 2, R]
+    ring = jnp.where(lit[None, :, None, None], ring, 0.0)
+    ring = ring.at[0, :, 0].set(jnp.where(lit[:, None], ring[0, :, 0], 1.0))
+    theta = jnp.degrees(jnp.arccos(jnp.clip(jnp.abs(d[..., 2]), 0.0, 1.0)))
+    return jnp.where(lit[None], jnp.minimum(theta, 89.9), 0.0), ring
+
+
+def _surface(xy):
+    return jnp.concatenate([jnp.asarray(xy), jnp.zeros((xy.shape[0], 1), jnp.result_type(xy))], 1)
 
 
 def pixel_lighting(endoscope, illumination=None) -> tuple[np.ndarray, Lighting]:
@@ -223,7 +250,8 @@ def node_factor(q0, q1, mua, mus, g_node: float, g, lighting, *, log_a=LOG_A_L, 
     """F [...] of one (g, n) node's tables (`q0`, `q1` [T, A, K]) for the medium mua, mus [1/cm]
     (shape [...]) at anisotropy g, lit as `lighting` ([..., L, 1 + 2 R], `Lighting.stacked`,
     broadcastable against mua), read at equal a' = mua / mus' like the reflectance; linear in
-    log10 a, the incidence angle and log10 r. Differentiable in mua, mus, g."""
+    log10 a, the incidence angle and log10 r. Differentiable in mua, mus, g. The direct form: the
+    reference `read_factor` of `lighting_table` is tested against (the solver's fast path)."""
     light = jnp.asarray(lighting)
     q0, q1 = jnp.asarray(q0), jnp.asarray(q1)
     a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30)
@@ -291,3 +319,91 @@ def factor_by_convolution(traced: list[dict], irradiance, x0, mua: float, mus: f
                 out += float((weight(t) * e).sum()) / t["photons"] / (2 * len(turns))
     r0 = float(weight(traced[0]).sum()) / traced[0]["photons"]
     return out / (float(e0.sum()) * r0)
+
+
+def _ring_index(edges=RHO_EDGES, radii=RADII, log_mus=LOG_MUS) -> np.ndarray:
+    """[K, S] the node of the radius grid each bin of rho is read at for each mus' of `log_mus`
+    (clamped to the grid). Raises where a bin falls between nodes: the bins' centres and the grid
+    of mus' must lie on the radii's spacing."""
+    h = (radii[1] - radii[0]) / (radii[2] - 1)
+    pos = (np.log10(rho_centres(edges))[:, None] - _grid(log_mus)[None, :] - radii[0]) / h
+    idx = np.rint(pos)
+    if not np.allclose(pos, idx, atol=1e-6):
+        raise ValueError("the bins of rho and the grid of log10 mus' are not on the ring radii's spacing")
+    return np.clip(idx.astype(np.int64), 0, int(radii[2]) - 1)
+
+
+def lighting_basis(q0, q1, *, edges=RHO_EDGES, radii=RADII, log_mus=LOG_MUS):
+    """[T * 2 * R, A * S] one node's tables (`q0`, `q1` [T, A, K]) as the linear map from a pixel's
+    `pixel_vector` to its factor table over (log10 a, log10 mus') (`lighting_table`): entry ((t, m,
+    j), (a, s)) is the harmonic weight (1, 2) times the sum of q_m[t, a, k] over the bins k read at
+    radius node j when mus' is node s of `log_mus`. One small matrix product (jit-friendly)."""
+    q = jnp.stack([jnp.asarray(q0), 2.0 * jnp.asarray(q1)], 1)  # [T, 2, A, K]
+    nt, _, na, nk = q.shape
+    idx = _ring_index(edges, radii, log_mus)  # [K, S]
+    nr, ns = int(radii[2]), idx.shape[1]
+    onehot = np.zeros((nk, nr, ns))
+    onehot[np.arange(nk)[:, None], idx, np.arange(ns)[None, :]] = 1.0
+    b = jnp.asarray(q).reshape(-1, nk) @ jnp.asarray(onehot.reshape(nk, -1))  # [(T, 2, A), (R, S)]
+    return jnp.transpose(b.reshape(nt, 2, na, nr, ns), (0, 1, 3, 2, 4)).reshape(nt * 2 * nr, na * ns)
+
+
+def pixel_vector(lighting, *, angles=INCIDENCE_DEG):
+    """[..., T * 2 * R] a pixel's lighting (`lighting` [..., L, 1 + 2 R], `Lighting.stacked`) as the
+    vector `lighting_basis` maps: per incidence node t, harmonic m and radius j, the sum over the
+    lights of their weight at node t (linear in the incidence angle) times their ring mean m at j."""
+    light = jnp.asarray(lighting)
+    nt, nr = len(angles), (light.shape[-1] - 1) // 2
+    it, st = _cell(light[..., 0] / (angles[1] - angles[0]), (0.0, nt - 1.0, nt))  # [..., L]
+    nodes = jnp.arange(nt, dtype=it.dtype)
+    it, st = it[..., None], st[..., None]
+    w = jnp.where(nodes == it, 1 - st, 0.0) + jnp.where(nodes == it + 1, st, 0.0)  # [..., L, T]
+    ring = light[..., 1:].reshape(light.shape[:-1] + (2, nr))
+    v = jnp.einsum("...lt,...lmr->...tmr", w, ring)
+    return v.reshape(v.shape[:-3] + (-1,))
+
+
+def lighting_table(q0, q1, lighting, *, log_a=LOG_A_L, log_mus=LOG_MUS):
+    """[..., A, S] one node's factor F on the grid `log_a` x `log_mus` (log10 a of the node, log10
+    mus' [1/cm]) for each pixel's `lighting` [..., L, 1 + 2 R]: `pixel_vector` times
+    `lighting_basis` (module docstring), in float32: its rounding (~1e-7 of F) is far below the
+    tables' Monte Carlo error (~1e-3), and the product takes half the time (the solver makes one
+    table per pixel and round)."""
+    f32 = jnp.float32
+    table = pixel_vector(lighting).astype(f32) @ lighting_basis(q0, q1, log_mus=log_mus).astype(f32)
+    return table.reshape(table.shape[:-1] + (int(log_a[2]), int(log_mus[2])))
+
+
+def read_factor(table, mua, mus, g_node: float, g, *, cubic: bool = True, log_a=LOG_A_L, log_mus=LOG_MUS):
+    """F [...] from a pixel's factor table (`lighting_table` [..., A, S], its batch shape
+    broadcastable against mua's) for the medium mua, mus [1/cm] at anisotropy g, read at log10 a
+    (at equal a' = mua / mus', like the reflectance) and log10 mus'. `cubic`: Catmull-Rom in both
+    (through the table's values, with a continuous gradient: a least-squares solver that meets a
+    kink of the bilinear form near a minimum steps to and fro across it and does not converge;
+    measured on a noisy 96 x 96 map, 4 % of pixels); else bilinear, which is `node_factor`'s value
+    for mus' within `LOG_MUS`. Differentiable in mua, mus, g."""
+    table = jnp.asarray(table)
+    na, ns = int(log_a[2]), int(log_mus[2])
+    a = jnp.maximum(mua, 0.0) / jnp.maximum(mus, 1e-30)
+    iu, su = _cell(jnp.log10(jnp.maximum(a * (1.0 - g_node) / (1.0 - g), 1e-300)), log_a)
+    js, ss = _cell(jnp.log10(jnp.maximum(mus * (1.0 - g), 1e-30)), log_mus)
+    flat = table.reshape(table.shape[:-2] + (-1,))
+    if flat.ndim > 1:
+        batch = jnp.broadcast_shapes(iu.shape, flat.shape[:-1])
+        flat = jnp.broadcast_to(flat, batch + flat.shape[-1:])
+        iu, su, js, ss = (jnp.broadcast_to(x, batch) for x in (iu, su, js, ss))
+
+    def pick(da, ds):  # the table at node (iu + da, js + ds), clamped to the grid
+        at = jnp.clip(iu + da, 0, na - 1) * ns + jnp.clip(js + ds, 0, ns - 1)
+        v = flat[at] if flat.ndim == 1 else jnp.take_along_axis(flat, at[..., None], -1)[..., 0]
+        return v.astype(ss.dtype)
+
+    offsets, wu, ws = ((-1, 0, 1, 2), _catmull_rom(su), _catmull_rom(ss)) if cubic else ((0, 1), (1 - su, su), (1 - ss, ss))
+    return sum(wa * sum(wb * pick(da, db) for db, wb in zip(offsets, ws)) for da, wa in zip(offsets, wu))
+
+
+def _catmull_rom(t):
+    """The weights of the nodes i - 1, i, i + 1, i + 2 of a Catmull-Rom spline at fraction t of
+    the cell (i, i + 1): it passes through the nodes with a continuous first derivative."""
+    t2, t3 = t * t, t * t * t
+    return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)

@@ -194,18 +194,27 @@ class WhiteModel(eqx.Module):
         var = jnp.sum((r * view) ** 2 * ((1 - t)[..., None] * rv.T[k] + t[..., None] * rv.T[k + 1]), -1)
         return jnp.log(jnp.maximum(rho, TINY)), var / jnp.maximum(rho, TINY) ** 2
 
-    def log_lighting(self, mua, mus, g, n, lighting):
-        """ln F [...]: the factor by which light that is oblique and not uniform (`lighting`
-        [..., L, 1 + 2 R], `_lighting.Lighting.stacked`) changes the reflectance at mua, mus [1/cm] [...]
-        (`_lighting.py`), interpolated over the nodes like ln R. Differentiable in mua, mus, g, n."""
+    def lighting_table(self, lighting):
+        """[..., G, N, A, S] each node's factor table (`_lighting.lighting_table`) for the pixels'
+        `lighting` [..., L, 1 + 2 R] (`_lighting.Lighting.stacked`): computed once per pixel, read
+        by `log_lighting` at any medium."""
         if not self.lit:
             raise ValueError("this WhiteModel was built without lighting tables (build_model(lighting=True))")
+        rows = [jnp.stack([_lighting.lighting_table(self.lit_q0[i, j], self.lit_q1[i, j], lighting)
+                           for j in range(len(self.n_nodes))], -3) for i in range(len(self.g_nodes))]
+        return jnp.stack(rows, -4)
+
+    def log_lighting(self, mua, mus, g, n, table):
+        """ln F [...]: the factor by which light that is oblique and not uniform changes the
+        reflectance at mua, mus [1/cm] [...] (`_lighting.py`), read from the pixels' `table` [..., G,
+        N, A, S] (`lighting_table`, its batch shape broadcastable against mua's) and interpolated over
+        the nodes like ln R. Differentiable in mua, mus, g, n."""
         wg = hermite_weights(self.g_nodes, g)
         wn = hermite_weights(self.n_nodes, n)
         out = 0.0
         for i, gi in enumerate(self.g_nodes):
             for j in range(len(self.n_nodes)):
-                f = _lighting.node_factor(self.lit_q0[i, j], self.lit_q1[i, j], mua, mus, gi, g, lighting)
+                f = _lighting.read_factor(table[..., i, j, :, :], mua, mus, gi, g)
                 out = out + wg[i] * wn[j] * jnp.log(jnp.maximum(f, TINY))
         return out
 
@@ -262,6 +271,6 @@ class WhiteModel(eqx.Module):
         mua, mus = jnp.asarray(mua), jnp.asarray(mus)
         ly, rel = self.log_reflectance(mua, mus, g, n, v)
         if lighting is not None:
-            ly = ly + self.log_lighting(mua, mus, g, n, lighting)
+            ly = ly + self.log_lighting(mua, mus, g, n, self.lighting_table(lighting))
         rho = jnp.exp(ly)
         return rho, rho * jnp.sqrt(rel)

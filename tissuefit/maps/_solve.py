@@ -68,22 +68,27 @@ class Problem(eqx.Module):
         vals = [p.to_value(x[i]) for i, p in enumerate(self.parameters)]
         return jnp.stack(vals)
 
-    def model(self, x, view, lighting=None):
+    def lighting_table(self, lighting):
+        """The pixel's factor tables (`WhiteModel.lighting_table` of its `lighting` [..., L, 1 +
+        2 R]) when the problem is `lit`; else `lighting` (a placeholder) as it is."""
+        return self.white.lighting_table(lighting) if self.lit else lighting
+
+    def model(self, x, view, table=None):
         """(ln y [stacks * bands], relative variance [stacks * bands]) at unconstrained x (scales
-        excluded): the reflectance (times the factor of the pixel's `lighting`, [L, 1 + 2 R], when
-        the problem is `lit`), and with fluorophores in the layer their escaping fluorescence,
+        excluded): the reflectance (times the lighting factor read from the pixel's `table`, its
+        `lighting_table`, when the problem is `lit`), and with fluorophores in the layer their escaping fluorescence,
         y_sk = P_sk rho_k + sum_j P_sj M_jk I_jk (P_s the light per band of stack s, M
         `PixelSpectra.conversion`), stack after stack."""
-        return self.predict(self.values(x), view, lighting)
+        return self.predict(self.values(x), view, table)
 
-    def predict(self, free, view, lighting=None):
+    def predict(self, free, view, table=None):
         """`model` at the natural values `free` [len(parameters)]."""
         mua, mus, g = self.spectra.properties(free)
         ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
         # the lights' fall-off and incidence: the reflectance's factor per band, the fluorescence escaping
         # in band k given band k's (its lateral spread taken as the reflectance's there; _lighting.py)
         # (the candidates' table for the start leaves it out: lighting None)
-        ln_f = (self.white.log_lighting(mua, mus, g, self.n, lighting) if self.lit and lighting is not None
+        ln_f = (self.white.log_lighting(mua, mus, g, self.n, table) if self.lit and table is not None
                 else jnp.zeros_like(ly))
         ly = ly + ln_f
         if self.light is None and not self.spectra.fluorophores:  # one stack under white light
@@ -103,8 +108,8 @@ class Problem(eqx.Module):
         return jnp.log(safe).reshape(-1), (var / safe**2).reshape(-1)
 
     def residual(self, x, args):
-        y, var, use, view, lighting, prior_mean, prior_w = args
-        ly, rel = self.model(x, view, lighting)
+        y, var, use, view, table, prior_mean, prior_w = args
+        ly, rel = self.model(x, view, table)
         log_s = jnp.repeat(x[x.size - self.stacks:], y.size // self.stacks) if self.scale else 0.0
         pred = jnp.exp(log_s + ly)
         sigma2 = var + jax.lax.stop_gradient(pred**2 * rel)
@@ -114,7 +119,10 @@ class Problem(eqx.Module):
 
 def _solve_one(problem: Problem, x0, args, method: str, max_steps: int, rtol: float, atol: float):
     """One pixel: optimistix's Gauss-Newton (`method="gn"`) or Levenberg-Marquardt ("lm") from x0,
-    then the covariance, the natural values and their standard errors at the solution."""
+    then the covariance, the natural values and their standard errors at the solution. `args`
+    carries the pixel's lighting (`Problem.residual`'s args with the lighting for the table): its
+    factor table is made once, before the solve."""
+    args = args[:4] + (problem.lighting_table(args[4]),) + args[5:]
     solver = optx.GaussNewton(rtol=rtol, atol=atol) if method == "gn" else optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(problem.residual, solver, x0, args, max_steps=max_steps, throw=False)
     x = sol.value

@@ -27,7 +27,7 @@ def model_stack(model, free, values, *, white=None, scale=None, view=1.0, light=
     flat = values.reshape(p, -1).T
 
     def one(v, w, li):
-        return jnp.exp(problem.predict(v, w, li)[0])
+        return jnp.exp(problem.predict(v, w, problem.lighting_table(li))[0])
 
     out = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(flat), jnp.asarray(vw), jnp.asarray(lit))).T.reshape(nb, height, width)
     return out if scale is None else out * np.asarray(scale, np.float64)
