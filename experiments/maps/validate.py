@@ -16,7 +16,7 @@ by distance from the nearest edge. Writes results_validate_<tag>.json, validate_
 render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone][_<photons>].
 
     PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous]
-        [--cone-lights [--lighting]] [--saved] [--tag-photons]
+        [--cone-lights [--lighting]] [--saved] [--tag-photons] [--seeds 0,1]
 
 Under the cone lights `--lighting` maps with each pixel's `Lighting` (tissuefit.maps.pixel_lighting:
 the model corrected for the lights' oblique incidence and fall-off), and the rows of the uniform,
@@ -107,6 +107,9 @@ def main() -> None:
                     help="(with --cone-lights) map with each pixel's Lighting as well as with the uniform model")
     ap.add_argument("--saved", action="store_true", help="map the saved render_<tag>.npz instead of rendering")
     ap.add_argument("--tag-photons", action="store_true", help="put the photon count in the file names")
+    ap.add_argument("--seeds", default="0",
+                    help="comma-separated render seeds (0: the original keys); with several, the renders (each saved as "
+                         "render_<tag>[_seed<s>].npz, or read with --saved) are averaged: twice the photons, another noise")
     args = ap.parse_args()
     if args.lighting and not args.cone_lights:
         ap.error("--lighting corrects for the cone lights: give --cone-lights too")
@@ -119,18 +122,25 @@ def main() -> None:
     patches = [] if args.homogeneous else PATCHES
     tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
            + ("_cone" if args.cone_lights else "") + (f"_{args.photons}" if args.tag_photons else ""))
-    out_tag = tag + ("_lit" if args.lighting else "")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    out_tag = (tag + (f"_x{len(seeds)}" if len(seeds) > 1 else f"_seed{seeds[0]}" if seeds[0] else "")
+               + ("_lit" if args.lighting else ""))
     tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
-    if args.saved:
-        saved = np.load(HERE / f"render_{tag}.npz")
-        raw, rvar = saved["raw"], saved["variance"]
-    else:
-        raw, rvar = render_stack(args, tissue, e)
+    renders = []
+    for seed in seeds:
+        path = HERE / f"render_{tag}{f'_seed{seed}' if seed else ''}.npz"
+        if args.saved:
+            saved = np.load(path)
+            renders.append((saved["raw"], saved["variance"]))
+        else:
+            renders.append(render_stack(args, tissue, e, seed))
+            np.savez_compressed(path, raw=renders[-1][0], variance=renders[-1][1])  # for regions.py (80 KB at 16 px)
     render_s = time.perf_counter() - t
-    if not args.saved:
-        np.savez_compressed(HERE / f"render_{tag}.npz", raw=raw, variance=rvar)  # for regions.py (80 KB at 16 px)
+    # independent renders averaged: the mean's variance is the sum of theirs over the count squared
+    raw = sum(r for r, _ in renders) / len(renders)
+    rvar = sum(v for _, v in renders) / len(renders) ** 2
     gain = args.peak_counts / raw.max()
     rng = np.random.default_rng(11)
     mean = raw * gain
@@ -155,6 +165,7 @@ def main() -> None:
     snr = float(np.median(mean / np.sqrt(var)))
     render_share = float(np.median(rvar * gain**2 / var))
     out = dict(machine=info, homogeneous=bool(args.homogeneous), per_band=bool(args.per_band), photons=args.photons,
+               seeds=seeds,
                width=args.width, saved_render=bool(args.saved), render_seconds=None if args.saved else render_s,
                model_seconds=model_s, lighting=bool(args.lighting), map_seconds=res.seconds,
                flagged=int((res.flags != 0).sum()), median_snr=snr, median_render_variance_share=render_share, rows=rows)
@@ -165,15 +176,16 @@ def main() -> None:
     plot(args, res, f_true, s_true, out_tag)
 
 
-def render_stack(args, tissue, e):
+def render_stack(args, tissue, e, seed: int = 0):
     """The render [bands, H, W] and its variance: under the floodlight, or under the cone lights
-    divided by a white reference's render and multiplied by the model's reflectance of it."""
+    divided by a white reference's render and multiplied by the model's reflectance of it. `seed`
+    0 keeps the original keys (7, 8); seed s uses 7 + 2 s and 8 + 2 s."""
     from tissuefit.render import Floodlight, RenderOptions, render
     from tissuefit.transport import SpectralOptions
 
     light = None if args.cone_lights else Floodlight(radius=1.2)
     spectral = SpectralOptions(mode="per_band") if args.per_band else None
-    r = render(tissue, e, photons=args.photons, key=jax.random.key(7), illumination=light,
+    r = render(tissue, e, photons=args.photons, key=jax.random.key(7 + 2 * seed), illumination=light,
                options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
     if args.cone_lights:  # white reference: same lights, a nearly white medium; its model reflectance restores it
@@ -182,7 +194,7 @@ def render_stack(args, tissue, e):
 
         ref_t = SpectralTissue(LayerOptics(ConstantAbsorption(0.5), ConstantScattering(500.0, 0.9)), n=[1.4],
                                thickness=[math.inf])
-        ref = render(ref_t, e, photons=args.photons, key=jax.random.key(8), illumination=None,
+        ref = render(ref_t, e, photons=args.photons, key=jax.random.key(8 + 2 * seed), illumination=None,
                      options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
         w_raw, w_var = np.asarray(ref.raw, np.float64), np.asarray(ref.variance, np.float64)
         _, _, cos0 = pixel_geometry(e)

@@ -151,6 +151,10 @@ def test_cached_lighting_tables_read_back(white_lit, lit_cache):
     plain = build_model((0.9,), (1.4,), photons=PHOTONS, seed=5, cache=lit_cache)
     assert not plain.lit  # keyed apart
     np.testing.assert_array_equal(plain.log_value, white_lit.log_value)  # the same reflectance trace
+    # the build reuses that trace as the lighting's normal-incidence one: the tables of a separate trace
+    separate = _lighting.build_lighting_node(0.9, 1.4, photons=PHOTONS, seed=5, a_floor=white_lit.a_floor)
+    np.testing.assert_array_equal(separate["q0"], white_lit.lit_q0[0, 0])
+    np.testing.assert_array_equal(separate["q1"], white_lit.lit_q1[0, 0])
 
 
 def test_map_under_the_cone_lights_needs_the_lighting(white_lit, white):

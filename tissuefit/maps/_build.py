@@ -150,9 +150,10 @@ def node_key(g: float, n: float, seed: int):
     return jax.random.fold_in(jax.random.key(seed), int(round(g * 1e4)) * 100000 + int(round(n * 1e4)))
 
 
-def build_node(g: float, n: float, *, photons: int, seed: int, a_floor: float = A_FLOOR) -> dict:
-    """Trace and tabulate one (g, n) node (key: `node_key`)."""
+def build_node(g: float, n: float, *, photons: int, seed: int, a_floor: float = A_FLOOR) -> tuple[dict, dict]:
+    """Trace and tabulate one (g, n) node (key: `node_key`): (table, the trace itself, which the
+    lighting tables reuse as their normal-incidence trace)."""
     traced = trace_white(g, n, photons=photons, key=node_key(g, n, seed), a_floor=a_floor)
     table = tabulate(traced)
     table.update(eps=traced["eps"], seconds=traced["seconds"], rd=traced["rd"], rd_stderr=traced["rd_stderr"])
-    return table
+    return table, traced

@@ -104,8 +104,8 @@ def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: 
     2 CPU cores, longer at higher g) and cached. `fluorescence`: also the fluorescence tables, from
     a trace of that many photons per node (True: `FLUORESCENCE_PHOTONS`; False/0: none).
     `lighting`: also the lighting tables (`_lighting.py`, for oblique, non-uniform light such as an
-    endoscope's), from `photons` photons at each of the incidence angles (about 50 s more per node
-    at g = 0.9).
+    endoscope's), from `photons` photons at each oblique incidence angle (the normal one is the
+    reflectance's trace; about 30 s more per node at g = 0.9 on 2 idle CPU cores).
     `cache`: True (the default folder, `default_model_dir()`), a folder, or False/None (no cache).
     `progress(text)` hears each node."""
     fl_photons = FLUORESCENCE_PHOTONS if fluorescence is True else int(fluorescence or 0)
@@ -124,7 +124,8 @@ def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: 
     for g in g_nodes:
         row, fl_row, lit_row = [], [], []
         for n in n_nodes:
-            row.append(build_node(g, n, photons=photons, seed=seed, a_floor=a_floor))
+            table, traced = build_node(g, n, photons=photons, seed=seed, a_floor=a_floor)
+            row.append(table)
             if progress is not None:
                 progress(f"white Monte Carlo node g = {g:g}, n = {n:g}: {row[-1]['seconds']:.1f} s")
             if fl_photons:
@@ -133,7 +134,8 @@ def build_model(g_nodes=(0.9,), n_nodes=(1.4,), *, photons: int = 50_000, seed: 
                 if progress is not None:
                     progress(f"  fluorescence: {fl_row[-1]['conversions']} conversions, {fl_row[-1]['seconds']:.1f} s")
             if lit_photons:
-                lit_row.append(_lighting.build_lighting_node(g, n, photons=lit_photons, seed=seed, a_floor=a_floor))
+                lit_row.append(_lighting.build_lighting_node(g, n, photons=lit_photons, seed=seed, a_floor=a_floor,
+                                                             normal=traced))
                 if progress is not None:
                     progress(f"  lighting: {len(_lighting.INCIDENCE_DEG)} incidence angles, {lit_row[-1]['seconds']:.1f} s")
         tables.append(row)
