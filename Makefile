@@ -29,7 +29,7 @@ demo: $(STAMP)
 	@echo "truth: blood_fraction 0.02, blood_saturation 0.7 (data_spec/examples/fit_demo.toml); wrote out/demo/fit/fit.{json,png}"
 	@# Last, per-pixel maps of the same measurement (white Monte Carlo model, built once and cached).
 	@# The stack was recorded under the endoscope's cone lights: --lighting endoscope corrects each pixel's model for
-	@# their oblique incidence and fall-off (the model's lighting tables: about 50 s the first time, then cached).
+	@# their oblique incidence and fall-off (the model's lighting tables: about 30-40 s the first time, then cached).
 	$(BIN)/tissuefit map out/demo/fit/measured.json --scene data_spec/examples/fit_demo.toml --free blood_fraction,saturation \
 		--lighting endoscope --out out/demo/map
 	@echo "wrote out/demo/map/maps.{tif,json,png} and out/demo/map/summary.json (truth: blood_fraction 0.02, saturation 0.7)"

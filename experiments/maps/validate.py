@@ -238,6 +238,8 @@ def accuracy(res, f_true, s_true, edge) -> dict:
 
 
 def plot(args, res, f_true, s_true, tag) -> None:
+    count = len(args.seeds.split(","))
+    renders = f"{count} x " if count > 1 else ""  # independent renders averaged
     good = res.flags == 0
     fe = res["blood_fraction"] / f_true - 1
     se = res["blood_saturation"] - s_true
@@ -260,7 +262,7 @@ def plot(args, res, f_true, s_true, tag) -> None:
             ax[row, col].set_yticks([])
             fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
     what = "cone lights / white reference" + (", lighting-corrected model" if args.lighting else "")
-    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {args.photons:,} photons, {args.width}x{args.width}\n"
+    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {renders}{args.photons:,} photons, {args.width}x{args.width}\n"
                  f"camera peak {args.peak_counts:g} counts (blood fraction and saturation are dimensionless; white: flagged)",
                  fontsize=10)
     fig.tight_layout()

@@ -310,7 +310,7 @@ def _map_parser(commands) -> None:
                          "endoscope: MEASURED is the camera of --scene's [endoscope] under its two cone lights, and each "
                          "pixel's model is corrected for their oblique incidence and fall-off around it (its viewing "
                          "cosine also comes from the geometry, not --view-cos; the model is built with its lighting "
-                         "tables, about 50 s more the first time)")
+                         "tables, about 30-40 s more the first time)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
                     help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
     mp.add_argument("--light", metavar="white|violet|P1,P2,...", action="append",
