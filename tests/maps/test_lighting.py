@@ -105,6 +105,46 @@ def test_pixel_table_reads_the_direct_factor(traced):
                                    mua.T, mus.T, light), rtol=1e-6)
 
 
+def test_cubic_read_is_catmull_rom_through_the_direct_factor(traced):
+    # the solver's read against a brute-force Catmull-Rom of node_factor's values at the 4 x 4 nodes
+    # around the point (uniform Catmull-Rom: tangents (f[i+1] - f[i-1]) / 2), and its gradient
+    # continuous across a node (where the bilinear read's jumps)
+    tables = _lighting.tabulate_lighting(traced)
+    q0, q1 = tables["q0"], tables["q1"]
+    _, lighting = pixel_lighting(Endoscope(beta_deg=30.0, distance=0.8, width=2, height=2))
+    light = jnp.asarray(lighting.stacked()[1, 0])
+    table = _lighting.lighting_table(q0, q1, light)
+    g = 0.8
+    u0 = _lighting.LOG_A_L[0]
+    hu = (_lighting.LOG_A_L[1] - u0) / (_lighting.LOG_A_L[2] - 1)
+    s0 = _lighting.LOG_MUS[0]
+    hs = (_lighting.LOG_MUS[1] - s0) / (_lighting.LOG_MUS[2] - 1)
+
+    def medium(u, s):  # mua, mus at log10 a = u, log10 mus' = s
+        mus = 10.0**s / (1 - g)
+        return 10.0**u * mus, mus
+
+    def node(i, j):
+        return float(_lighting.node_factor(q0, q1, *medium(u0 + i * hu, s0 + j * hs), g, g, light))
+
+    def weights(t):
+        return np.array([-0.5 * t**3 + t**2 - 0.5 * t, 1.5 * t**3 - 2.5 * t**2 + 1, -1.5 * t**3 + 2 * t**2 + 0.5 * t,
+                         0.5 * t**3 - 0.5 * t**2])
+
+    for i, j, tu, ts in ((40, 20, 0.3, 0.7), (55, 28, 0.85, 0.1), (30, 35, 0.5, 0.5)):
+        f = np.array([[node(i + a, j + b) for b in (-1, 0, 1, 2)] for a in (-1, 0, 1, 2)])
+        want = weights(tu) @ f @ weights(ts)
+        got = float(_lighting.read_factor(table, *medium(u0 + (i + tu) * hu, s0 + (j + ts) * hs), g, g))
+        assert got == pytest.approx(want, rel=1e-5)
+        assert float(_lighting.read_factor(table, *medium(u0 + i * hu, s0 + j * hs), g, g)) == pytest.approx(f[1, 1], rel=1e-5)
+    # d F / d mua just below and just above a node of log10 a
+    mua, mus = medium(u0 + 40 * hu, s0 + 20.4 * hs)
+    slope = {c: [float(jax.grad(lambda m: _lighting.read_factor(table, m, mus, g, g, cubic=c))(mua * (1 + e)))
+                 for e in (-1e-7, 1e-7)] for c in (True, False)}
+    assert slope[True][0] == pytest.approx(slope[True][1], rel=1e-4)
+    assert abs(slope[False][0] / slope[False][1] - 1) > 1e-3  # the kink the cubic read removes
+
+
 def test_ring_means_follow_the_cone_lights_geometry():
     e = Endoscope(beta_deg=0.0, distance=1.0)
     _, _, _, centres = e.frame()
