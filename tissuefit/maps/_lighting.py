@@ -29,10 +29,11 @@ Evaluated so per band, F costs some 50 gathers of K-vectors per light, and a per
 it hundreds of times. But a pixel's lighting is fixed during its fit, and F is linear in its tables:
 with the bins' radii on the ring's grid (`RHO_EDGES`), F over a grid of (log10 a', log10 mus')
 (`LOG_A_L` x `LOG_MUS`) is one matrix product of the pixel's incidence weights and ring means
-(`pixel_vector`, T x 2 x R values) with a basis made of the node's tables (`lighting_basis`), and F
-at any medium is that table's bilinear interpolation (`read_factor`): exactly `node_factor`'s value
-(the same linear interpolations, in a different order), at a tenth of its cost per pixel once, and
-a few hundred times less per evaluation.
+(`pixel_vector`, T x 2 x R values) with a basis made of the node's tables (`lighting_basis`). Read
+bilinearly (`read_factor(..., cubic=False)`) that table gives exactly `node_factor`'s value (the
+same linear interpolations, in a different order); the solver reads it with Catmull-Rom weights
+through the same values (a continuous gradient). The table costs about a tenth of one direct
+evaluation per pixel, once, and each read a few hundred times less than a direct evaluation.
 
 Under uniform normal light F = 1. With a free per-pixel scale only F's change across the bands
 matters: long diffusion lengths (red) sample more of the falling irradiance and of the oblique

@@ -76,9 +76,9 @@ class Problem(eqx.Module):
     def model(self, x, view, table=None):
         """(ln y [stacks * bands], relative variance [stacks * bands]) at unconstrained x (scales
         excluded): the reflectance (times the lighting factor read from the pixel's `table`, its
-        `lighting_table`, when the problem is `lit`), and with fluorophores in the layer their escaping fluorescence,
-        y_sk = P_sk rho_k + sum_j P_sj M_jk I_jk (P_s the light per band of stack s, M
-        `PixelSpectra.conversion`), stack after stack."""
+        `lighting_table`, when the problem is `lit`), and with fluorophores in the layer their
+        escaping fluorescence, y_sk = P_sk rho_k + sum_j P_sj M_jk I_jk (P_s the light per band of
+        stack s, M `PixelSpectra.conversion`), stack after stack."""
         return self.predict(self.values(x), view, table)
 
     def predict(self, free, view, table=None):
@@ -87,7 +87,7 @@ class Problem(eqx.Module):
         ly, rel = self.white.log_reflectance(mua, mus, g, self.n, view)
         # the lights' fall-off and incidence: the reflectance's factor per band, the fluorescence escaping
         # in band k given band k's (its lateral spread taken as the reflectance's there; _lighting.py)
-        # (the candidates' table for the start leaves it out: lighting None)
+        # (the candidates' table for the start leaves it out: table None)
         ln_f = (self.white.log_lighting(mua, mus, g, self.n, table) if self.lit and table is not None
                 else jnp.zeros_like(ly))
         ly = ly + ln_f
