@@ -13,12 +13,13 @@ the exposure divided out; residual variance = camera noise + the render's own va
 Free per pixel: c_ppix, saturation and the scale (blood fraction, a, b known), light = the LED's
 band powers. Reported: median relative error of c_ppix and the fraction within 2 sigma, in the
 lesion and the mucosa, >= 0.1 cm from the lesion's edge and near it. Writes
-results_validate_ppix_<width>px[_homogeneous][_cone][_lit].json and validate_ppix_<...>.png.
+results_validate_ppix_<width>px[_homogeneous][_cone][_paths<n>][_lit].json and validate_ppix_<...>.png.
 `--lighting` (with `--cone-lights`): the map with each pixel's `Lighting` (tissuefit.maps.pixel_lighting),
 the uniform model's map kept beside it ("uniform"); region averages then use the pixels' lighting
 averaged with the fitted scale's weights.
 
-    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16] [--homogeneous] [--cone-lights [--lighting]]
+    PYTHONPATH=. python experiments/maps/validate_ppix.py [--photons 1000000] [--width 16] [--homogeneous]
+        [--cone-lights [--lighting]] [--paths 16]
 """
 
 from __future__ import annotations
@@ -54,6 +55,9 @@ def main() -> None:
                     help="the endoscope's two cone lights instead of the floodlight (oblique light falling off across "
                          "the field; the LED's spectrum is the same everywhere, so the per-pixel scale takes the irradiance)")
     ap.add_argument("--lighting", action="store_true", help="(with --cone-lights) map with each pixel's Lighting too")
+    ap.add_argument("--paths", type=int, default=16,
+                    help="camera paths per pixel that gather the fluorescence (RenderOptions.paths; the red bands' "
+                         "noise falls as 1 / sqrt(paths))")
     args = ap.parse_args()
     if args.lighting and not args.cone_lights:
         ap.error("--lighting corrects for the cone lights: give --cone-lights too")
@@ -87,7 +91,7 @@ def main() -> None:
     t = time.perf_counter()
     r = render(tissue, e, spectrum=led, photons=args.photons, key=jax.random.key(7),
                illumination=None if args.cone_lights else Floodlight(radius=1.2),
-               options=RenderOptions(specular_deg=0.0, smoothing="none"))
+               options=RenderOptions(specular_deg=0.0, smoothing="none", paths=args.paths))
     render_s = time.perf_counter() - t
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
     data, cam_var = band_exposure(raw, rng=np.random.default_rng(11), peak_counts=args.peak_counts)
@@ -147,7 +151,7 @@ def main() -> None:
         return dict(pixels=k, c=float(one["c_ppix"][0, 0]), c_sigma=float(one.sigma[one.names.index("c_ppix")][0, 0]),
                     saturation=float(one["blood_saturation"][0, 0]), reduced_chi2=float(one.reduced_chi2[0, 0]))
 
-    out = dict(machine=machine(), photons=args.photons, width=args.width, render_seconds=render_s, model_seconds=model_s,
+    out = dict(machine=machine(), photons=args.photons, paths=args.paths, width=args.width, render_seconds=render_s, model_seconds=model_s,
                map_seconds=res.seconds, flagged=int((~good).sum()), c_lesion=C_LESION, c_mucosa=C_MUCOSA,
                lesion_far=stats(inside & far), mucosa_far=stats(~inside & far), near_edge=stats(~far),
                median_red_snr=float(np.median(raw[13:] / np.sqrt(np.maximum(rvar[13:], 1e-300)))),
@@ -157,7 +161,7 @@ def main() -> None:
                               near_edge=stats(~far, uniform))
     print(json.dumps(out, indent=2))
     tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_cone" if args.cone_lights else "")
-           + ("_lit" if args.lighting else ""))
+           + (f"_paths{args.paths}" if args.paths != 16 else "") + ("_lit" if args.lighting else ""))
     (HERE / f"results_validate_ppix_{tag}.json").write_text(json.dumps(out, indent=2) + "\n")
     import matplotlib
 
