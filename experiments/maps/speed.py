@@ -11,6 +11,7 @@ straight down), the model with its lighting tables and each pixel's `Lighting` (
 timed on its own; results_speed_<N>_lit.json).
 
     PYTHONPATH=. python experiments/maps/speed.py [--size 512] [--chunk 4096] [--ppix [--white-light] | --lighting]
+        [--smoothness TAU]
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def main() -> None:
     ap.add_argument("--ppix", action="store_true", help="PpIX under violet light (module docstring)")
     ap.add_argument("--white-light", action="store_true", help="with --ppix: a white light instead of the violet LED")
     ap.add_argument("--lighting", action="store_true", help="reflectance under the cone lights (module docstring)")
+    ap.add_argument("--smoothness", type=float, default=None, help="the map's smoothness prior tau (a second pass)")
     args = ap.parse_args()
     tissuefit.configure()
     from tissuefit.fit import Measurement
@@ -89,12 +91,14 @@ def main() -> None:
     t = time.perf_counter()
     small_view = view if np.ndim(view) == 0 else view[:64, :64]
     map_stack(small, tissue, free, white=white, chunk=args.chunk, light=light, view=small_view,
-              lighting=small_lighting)  # compiles the chunk solver
+              lighting=small_lighting, smoothness=args.smoothness)  # compiles the chunk solver
     compile_s = time.perf_counter() - t
-    res = map_stack(m, tissue, free, white=white, chunk=args.chunk, light=light, view=view, lighting=lighting)
+    res = map_stack(m, tissue, free, white=white, chunk=args.chunk, light=light, view=view, lighting=lighting,
+                    smoothness=args.smoothness)
     good = res.flags == 0
     k = len(free)
-    out = dict(machine=info, size=n, bands=21, chunk=args.chunk, free=free, compile_and_64px_seconds=compile_s,
+    out = dict(machine=info, size=n, bands=21, chunk=args.chunk, free=free, smoothness=args.smoothness,
+               compile_and_64px_seconds=compile_s,
                lighting_seconds=lighting_s,
                map_seconds=res.seconds, timings=res.settings["timings"],
                levenberg_marquardt_pixels=res.settings["levenberg_marquardt_pixels"], pixels_per_second=n * n / res.seconds,
@@ -102,7 +106,7 @@ def main() -> None:
                median_rel_error={f: float(np.median(np.abs(res.values[i][good] / truth[i][good] - 1))) for i, f in enumerate(free)},
                within_2sigma=float(np.mean(np.abs((res.values[:k] - truth) / res.sigma[:k])[:, good] < 2)))
     (HERE / f"results_speed_{n}{'_ppix' if args.ppix else ''}{'_white' if args.white_light else ''}"
-            f"{'_lit' if args.lighting else ''}.json").write_text(json.dumps(out, indent=2) + "\n")
+            f"{'_lit' if args.lighting else ''}{f'_tau{args.smoothness:g}' if args.smoothness else ''}.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps({k: v for k, v in out.items() if k != "machine"}, indent=2))
 
 

@@ -13,10 +13,10 @@ read noise 2) and the render's own variance weigh the residuals.
 Reported per parameter: median relative (blood fraction) / absolute (saturation) error and the
 fraction of pixels within 2 sigma, over all good pixels, over pixels >= 0.1 cm from a patch edge and
 by distance from the nearest edge. Writes results_validate_<tag>.json, validate_<tag>.png and the render
-render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone][_<photons>].
+render_<tag>.npz (for regions.py), tag = <width>px[_homogeneous][_per_band][_cone][_adjoint<paths>][_<photons>].
 
     PYTHONPATH=. python experiments/maps/validate.py [--photons 3000000] [--width 16] [--per-band] [--homogeneous]
-        [--cone-lights [--lighting]] [--saved] [--tag-photons] [--seeds 0,1]
+        [--cone-lights [--lighting] [--estimator adjoint --paths 4096]] [--saved] [--tag-photons] [--seeds 0,1]
 
 Under the cone lights `--lighting` maps with each pixel's `Lighting` (tissuefit.maps.pixel_lighting:
 the model corrected for the lights' oblique incidence and fall-off), and the rows of the uniform,
@@ -107,12 +107,22 @@ def main() -> None:
                     help="(with --cone-lights) map with each pixel's Lighting as well as with the uniform model")
     ap.add_argument("--saved", action="store_true", help="map the saved render_<tag>.npz instead of rendering")
     ap.add_argument("--tag-photons", action="store_true", help="put the photon count in the file names")
+    ap.add_argument("--estimator", choices=("nee", "adjoint"), default="nee",
+                    help="the render's estimator (RenderOptions.estimator): 'nee' traces the lights' photons and "
+                         "scores each vertex towards the camera; 'adjoint' (cone lights only) traces --paths paths per "
+                         "pixel from the camera and connects them to the lights")
+    ap.add_argument("--paths", type=int, default=16, help="camera paths per pixel (RenderOptions.paths; 'adjoint')")
+    ap.add_argument("--smoothness", type=float, default=None,
+                    help="the map's spatial smoothness prior tau (tissuefit.map(smoothness=...): the prior sd of a "
+                         "pixel's unconstrained values against its neighbours' mean; default: independent pixels)")
     ap.add_argument("--seeds", default="0",
                     help="comma-separated render seeds (0: the original keys); with several, the renders (each saved as "
                          "render_<tag>[_seed<s>].npz, or read with --saved) are averaged: twice the photons, another noise")
     args = ap.parse_args()
     if args.lighting and not args.cone_lights:
         ap.error("--lighting corrects for the cone lights: give --cone-lights too")
+    if args.estimator == "adjoint" and not args.cone_lights:
+        ap.error("--estimator adjoint connects the camera's paths to the endoscope's lights: give --cone-lights")
     tissuefit.configure()
     from tissuefit.fit import Measurement
     from tissuefit.maps import map as map_stack, model_for_tissue, pixel_lighting
@@ -121,10 +131,12 @@ def main() -> None:
     info = machine()
     patches = [] if args.homogeneous else PATCHES
     tag = (f"{args.width}px" + ("_homogeneous" if args.homogeneous else "") + ("_per_band" if args.per_band else "")
-           + ("_cone" if args.cone_lights else "") + (f"_{args.photons}" if args.tag_photons else ""))
+           + ("_cone" if args.cone_lights else "")
+           + (f"_adjoint{args.paths}" if args.estimator == "adjoint" else "")
+           + (f"_{args.photons}" if args.tag_photons else ""))
     seeds = [int(s) for s in args.seeds.split(",")]
     out_tag = (tag + (f"_x{len(seeds)}" if len(seeds) > 1 else f"_seed{seeds[0]}" if seeds[0] else "")
-               + ("_lit" if args.lighting else ""))
+               + ("_lit" if args.lighting else "") + (f"_tau{args.smoothness:g}" if args.smoothness else ""))
     tissue = scene(patches)
     e = Endoscope(beta_deg=0.0, distance=1.0, width=args.width, height=args.width)
     t = time.perf_counter()
@@ -158,14 +170,14 @@ def main() -> None:
     model_s = time.perf_counter() - t
     lighting = pixel_lighting(e)[1] if args.lighting else None
     res = map_stack(Measurement(counts, var), model_tissue, ["blood_fraction", "saturation"], white=white, view=cosv,
-                    lighting=lighting, chunk=1024)
+                    lighting=lighting, chunk=1024, smoothness=args.smoothness)
     uniform = (map_stack(Measurement(counts, var), model_tissue, ["blood_fraction", "saturation"], white=white,
-                         view=cosv, chunk=1024) if args.lighting else None)
+                         view=cosv, chunk=1024, smoothness=args.smoothness) if args.lighting else None)
     rows = accuracy(res, f_true, s_true, edge)
     snr = float(np.median(mean / np.sqrt(var)))
     render_share = float(np.median(rvar * gain**2 / var))
     out = dict(machine=info, homogeneous=bool(args.homogeneous), per_band=bool(args.per_band), photons=args.photons,
-               seeds=seeds,
+               smoothness=args.smoothness, estimator=args.estimator, paths=args.paths if args.estimator == "adjoint" else None, seeds=seeds,
                width=args.width, saved_render=bool(args.saved), render_seconds=None if args.saved else render_s,
                model_seconds=model_s, lighting=bool(args.lighting), map_seconds=res.seconds,
                flagged=int((res.flags != 0).sum()), median_snr=snr, median_render_variance_share=render_share, rows=rows)
@@ -185,8 +197,9 @@ def render_stack(args, tissue, e, seed: int = 0):
 
     light = None if args.cone_lights else Floodlight(radius=1.2)
     spectral = SpectralOptions(mode="per_band") if args.per_band else None
+    options = RenderOptions(specular_deg=0.0, smoothing="none", estimator=args.estimator, paths=args.paths)
     r = render(tissue, e, photons=args.photons, key=jax.random.key(7 + 2 * seed), illumination=light,
-               options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
+               options=options, spectral=spectral)
     raw, rvar = np.asarray(r.raw, np.float64), np.asarray(r.variance, np.float64)
     if args.cone_lights:  # white reference: same lights, a nearly white medium; its model reflectance restores it
         from tissuefit.maps import model_for_tissue as _model
@@ -195,7 +208,7 @@ def render_stack(args, tissue, e, seed: int = 0):
         ref_t = SpectralTissue(LayerOptics(ConstantAbsorption(0.5), ConstantScattering(500.0, 0.9)), n=[1.4],
                                thickness=[math.inf])
         ref = render(ref_t, e, photons=args.photons, key=jax.random.key(8 + 2 * seed), illumination=None,
-                     options=RenderOptions(specular_deg=0.0, smoothing="none"), spectral=spectral)
+                     options=options, spectral=spectral)
         w_raw, w_var = np.asarray(ref.raw, np.float64), np.asarray(ref.variance, np.float64)
         _, _, cos0 = pixel_geometry(e)
         from tissuefit.maps import view_weights
@@ -261,8 +274,11 @@ def plot(args, res, f_true, s_true, tag) -> None:
             ax[row, col].set_xticks([])
             ax[row, col].set_yticks([])
             fig.colorbar(im, ax=ax[row, col], fraction=0.046).set_label("dimensionless" if col < 2 else unit, fontsize=8)
-    what = "cone lights / white reference" + (", lighting-corrected model" if args.lighting else "")
-    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, next-event render {renders}{args.photons:,} photons, {args.width}x{args.width}\n"
+    what = ("cone lights / white reference" + (", lighting-corrected model" if args.lighting else "")
+            + (f", smoothness prior tau {args.smoothness:g}" if args.smoothness else ""))
+    how = (f"camera-path render ({args.paths:,} paths per pixel)" if args.estimator == "adjoint"
+           else f"next-event render {renders}{args.photons:,} photons")
+    fig.suptitle(f"{what if args.cone_lights else 'floodlight'}, {how}, {args.width}x{args.width}\n"
                  f"camera peak {args.peak_counts:g} counts (blood fraction and saturation are dimensionless; white: flagged)",
                  fontsize=10)
     fig.tight_layout()

@@ -80,6 +80,44 @@ def test_vmapped_chunks_equal_the_pixel_loop(white):
     np.testing.assert_allclose(fast.sigma, sigma, rtol=1e-6)
 
 
+def test_neighbour_mean_carries_the_neighbours_variance():
+    """The prior's centre is the mean of the good 4-neighbours and its variance the sum of their
+    variances over the count squared; a pixel with no good neighbour gets no prior (variance inf)."""
+    from tissuefit.maps._solve import _neighbour_mean
+
+    x = np.arange(9.0).reshape(9, 1)
+    sd = np.full((9, 1), 2.0)
+    good = np.ones(9, bool)
+    good[[1, 3, 5, 7]] = False  # the centre's four neighbours
+    mean, var = _neighbour_mean(x, sd, 3, 3, good)
+    assert mean[0, 0] == x[0, 0] and np.isinf(var[0, 0])  # a corner's neighbours (1, 3) are both bad
+    assert mean[4, 0] == x[4, 0] and np.isinf(var[4, 0])
+    mean, var = _neighbour_mean(x, sd, 3, 3, np.ones(9, bool))
+    assert mean[4, 0] == (1 + 3 + 5 + 7) / 4 and var[4, 0] == 4 * 4.0 / 16
+    assert mean[0, 0] == (1 + 3) / 2 and var[0, 0] == 2 * 4.0 / 4
+
+
+def test_smoothness_prior_shrinks_the_noise_and_its_sigma_still_covers(white):
+    """On a uniform field (blood 2 %, saturation 0.7) at low counts, the smoothness prior cuts the
+    per-pixel error, and its sigma still covers the truth although tau is small: the neighbours'
+    mean is weighed by its own variance, not taken as known (taken as known, this field gave 51 %
+    within 2 sigma, the saturation's sigma 0.004 against errors of 0.027)."""
+    tissue = mucosa()
+    free = ["blood_fraction", "saturation"]
+    truth = np.stack([np.full((12, 12), 0.02), np.full((12, 12), 0.7)])
+    counts, var = camera_noise(model_stack(tissue, free, truth, white=white), rng=np.random.default_rng(6), peak_counts=400.0)
+    m = Measurement(counts, var)
+    alone = map_stack(m, tissue, free, white=white, chunk=72)
+    pooled = map_stack(m, tissue, free, white=white, chunk=72, smoothness=0.02)
+    assert (alone.flags == 0).all() and (pooled.flags == 0).all()
+    err_alone = np.abs(alone.values[:2] - truth)
+    err_pooled = np.abs(pooled.values[:2] - truth)
+    assert np.all(np.median(err_pooled, axis=(1, 2)) < 0.75 * np.median(err_alone, axis=(1, 2)))
+    assert np.all(np.median(pooled.sigma[:2], axis=(1, 2)) < 0.75 * np.median(alone.sigma[:2], axis=(1, 2)))
+    z = (pooled.values[:2] - truth) / pooled.sigma[:2]
+    assert np.mean(np.abs(z) < 2) >= 0.85
+
+
 def test_flags_and_files(white, tmp_path):
     tissue = mucosa()
     truth = _truth(3, 4, seed=7)

@@ -312,7 +312,8 @@ def _map_parser(commands) -> None:
                          "cosine also comes from the geometry, not --view-cos; the model is built with its lighting "
                          "tables, about 30-40 s more the first time)")
     mp.add_argument("--smoothness", type=float, metavar="TAU",
-                    help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean")
+                    help="spatial smoothness prior: sd of a pixel's unconstrained value against its neighbours' mean "
+                         "(the tissue's own spread; the mean's variance is added to it)")
     mp.add_argument("--light", metavar="white|violet|P1,P2,...", action="append",
                     help="the illumination per band in the stack's units: white (default: 1 in every band, or a stack "
                          "divided by a white reference), violet (a PDD camera's 405 nm LED, 20 nm FWHM, peak band 1, "

@@ -13,9 +13,11 @@ Gauss-Newton then minimises sum r^2 in a few steps (in rounds, the unconverged p
 between them), and optimistix's Levenberg-Marquardt takes over the pixels where Gauss-Newton did not
 converge (`GN_STEPS` says why that order); `jax.vmap` runs
 each over a chunk of pixels, compiled once for a fixed chunk size. An optional smoothness prior adds
-(x_i - m_i) / tau per parameter, m the mean of the 4 neighbours' previous solution (one more pass
-per `passes`). Uncertainties: the covariance (J^T J)^-1 at the solution, mapped to the natural
-values by the transforms' derivatives (the delta method). Pixels are flagged, never filled:
+(x_i - m_i) / sqrt(tau^2 + v_i) per parameter, m the mean of the 4 neighbours' previous solution and
+v its variance from their standard errors (one more pass per `passes`): the neighbours are evidence
+as uncertain as they are, so that the posterior's standard errors still cover the truth.
+Uncertainties: the covariance (J^T J)^-1 at the solution, mapped to the natural values by the
+transforms' derivatives (the delta method). Pixels are flagged, never filled:
 FLAG_SOLVER (optimistix did not report success), FLAG_BOUND (a value at its bound), FLAG_SINGULAR
 (J^T J not invertible or a value not finite), FLAG_MASKED (fewer usable bands than unknowns).
 Several stacks of one field under different lights (`measured` a list) are joined along the band
@@ -141,7 +143,8 @@ def _solve_one(problem: Problem, x0, args, method: str, max_steps: int, rtol: fl
     y, use = args[0], args[2]
     chi2 = jnp.sum(r[: y.size] ** 2)
     ok = sol.result == optx.RESULTS.successful
-    return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov))
+    sdx = jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0))  # in the unconstrained coordinates (the prior's)
+    return nat, sd, x, chi2, jnp.sum(use), ok, sol.stats["num_steps"], jnp.all(jnp.isfinite(cov)), sdx
 
 
 @eqx.filter_jit
@@ -229,15 +232,22 @@ def _initial(problem: Problem, tissue, y, var, use, view, chunk: int) -> np.ndar
     return np.concatenate([x, np.log(np.where(good, scale, fallback))], 1)
 
 
-def _neighbour_mean(x: np.ndarray, height: int, width: int, good: np.ndarray) -> np.ndarray:
-    """Mean of each pixel's 4 neighbours' x [H*W, P] among `good` pixels (itself where none is)."""
-    xs = x.reshape(height, width, -1)
+def _neighbour_mean(x: np.ndarray, sd: np.ndarray, height: int, width: int,
+                    good: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of each pixel's 4 neighbours' x [H*W, P] among `good` pixels and its variance from
+    their standard errors sd [H*W, P] (independent pixels: sum sd^2 / count^2); where no neighbour
+    is good, the pixel's own x and an infinite variance (no prior)."""
     ok = good.reshape(height, width, 1).astype(np.float64)
-    pad_x = np.pad(xs * ok, ((1, 1), (1, 1), (0, 0)))
-    pad_ok = np.pad(ok, ((1, 1), (1, 1), (0, 0)))
-    total = pad_x[:-2, 1:-1] + pad_x[2:, 1:-1] + pad_x[1:-1, :-2] + pad_x[1:-1, 2:]
-    count = pad_ok[:-2, 1:-1] + pad_ok[2:, 1:-1] + pad_ok[1:-1, :-2] + pad_ok[1:-1, 2:]
-    return np.where(count > 0, total / np.maximum(count, 1), xs).reshape(height * width, -1)
+
+    def neighbours_sum(a):
+        pad = np.pad(np.where(ok > 0, a.reshape(height, width, -1), 0.0), ((1, 1), (1, 1), (0, 0)))
+        return pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:]
+
+    count = neighbours_sum(np.ones_like(x))
+    some = count > 0
+    mean = np.where(some, neighbours_sum(x) / np.maximum(count, 1), x.reshape(height, width, -1))
+    var = np.where(some, neighbours_sum(sd**2) / np.maximum(count, 1) ** 2, np.inf)
+    return mean.reshape(height * width, -1), var.reshape(height * width, -1)
 
 
 def _run(problem, arrays, pixels, method, max_steps, chunk, rtol, atol, progress):
@@ -400,7 +410,10 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
       incidence (`_lighting.py`). Needs a model built with `lighting=True` (the default model is
       then built so). None: uniform light at normal incidence, as under a wide beam.
     - `smoothness`: tau, the prior sd [unconstrained units] of a pixel's value against its
-      neighbours' mean (None: independent pixels); `passes` solves when it is on.
+      neighbours' mean: how much the tissue itself varies from pixel to pixel (None: independent
+      pixels). The prior's variance is tau^2 plus the neighbours' mean's own variance (from their
+      standard errors), so that noisy neighbours pull less and the reported sigma stays honest.
+      `passes` solves when it is on (2: independent pixels, then each with its neighbours' values).
     - `chunk`: pixels per vmapped solve (memory: a 4096-pixel chunk of a PpIX map held ~3 GB);
       `max_steps`, `rtol`, `atol`: Levenberg-Marquardt.
     Returns a `MapResult`.
@@ -429,12 +442,13 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
     prior_w = np.zeros((npx, nx))
     prior_mean = np.zeros((npx, nx))
     npass = 1 if smoothness is None else max(1, int(passes))
-    x, flags = x0, np.zeros(npx, np.uint8)
+    x, sdx, flags = x0, None, np.zeros(npx, np.uint8)
+    npar = len(problem.parameters)
     for k in range(npass):
         if k > 0:
-            prior_mean = _neighbour_mean(x, height, width, flags == 0)
+            prior_mean, nvar = _neighbour_mean(x, sdx, height, width, flags == 0)
             prior_w = np.zeros((npx, nx))
-            prior_w[:, : len(problem.parameters)] = 1.0 / float(smoothness)
+            prior_w[:, :npar] = 1.0 / np.sqrt(float(smoothness) ** 2 + nvar[:, :npar])
         arrays = (x0, y, var, use, vw, lit, prior_mean, prior_w)
         # Gauss-Newton over every pixel, then again from where it stopped over the pixels it did not converge
         # on; Levenberg-Marquardt (from the start) over the rest, gathered into chunks of their own (`_run`)
@@ -450,7 +464,7 @@ def map(measured, model, free, *, white: WhiteModel | None = None, scale: bool =
         if retry.size:
             _merge(out, retry, _run(problem, arrays, retry, "lm", max_steps, chunk, rtol, atol, None))
         timings["levenberg_marquardt"] += time.perf_counter() - t
-        nat, sd, x, chi2, nuse, ok, steps, finite = out
+        nat, sd, x, chi2, nuse, ok, steps, finite, sdx = out
         lm_pixels = int(retry.size)
         flags = np.zeros(npx, np.uint8)
         flags[~ok] |= FLAG_SOLVER
