@@ -9,6 +9,7 @@ reaching them carry no weight (shared mode: not even a slot); no record buffers 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import equinox as eqx
@@ -327,17 +328,21 @@ def trace_spectral(
 _band_weights = jax.jit(band_weights)
 
 
+def _valid_rows(a, counts: list[int]) -> np.ndarray | None:
+    """The first counts[d] rows of each device's buffer a [devices, capacity, ...], concatenated (None
+    for None). On the host: indexing the device arrays eagerly compiled a gather for every new count."""
+    if a is None:
+        return None
+    a = np.asarray(a)
+    return np.concatenate([a[d, :c] for d, c in enumerate(counts)])
+
+
 def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) -> PhotonRecords | None:
     """Concatenate the devices' buffers (valid rows only) and evaluate each record's per-band power."""
     if buf is None:
         return None
     counts = [int(c) for c in np.asarray(buf.count)]
-
-    def take(a):
-        # on the host first: indexing the device arrays eagerly compiled a gather for every new count
-        a = None if a is None else np.asarray(a)
-        return None if a is None else np.concatenate([a[d, :c] for d, c in enumerate(counts)])
-
+    take = functools.partial(_valid_rows, counts=counts)
     count = sum(counts)
     band = take(buf.band).astype(np.int64)
     power = np.zeros((count, config.num_bands))
@@ -421,10 +426,7 @@ def _image_parts(acc, config: SpectralConfig, photons: int, scene: SpectralScene
         out["fluence"], out["fluence_tangents"] = fluence[0], fluence[1:] if k else None
     if acc.sites is not None:
         sites = acc.sites
-        rows = [np.arange(int(c)) for c in sites.count]
-
-        def take(a):
-            return np.concatenate([np.asarray(a)[d][r] for d, r in enumerate(rows)])
+        take = functools.partial(_valid_rows, counts=[int(c) for c in np.asarray(sites.count)])
 
         out["sites"] = EmissionSites(position=take(sites.position).astype(np.float64), layer=take(sites.layer),
                                      medium=take(sites.medium), power=take(sites.power).astype(np.float64),
