@@ -325,9 +325,6 @@ def trace_spectral(
     return _normalise(acc, photons, scene, config, exhausted)
 
 
-_band_weights = jax.jit(band_weights)
-
-
 def _valid_rows(a, counts: list[int]) -> np.ndarray | None:
     """The first counts[d] rows of each device's buffer a [devices, capacity, ...], concatenated (None
     for None). On the host: indexing the device arrays eagerly compiled a gather for every new count."""
@@ -337,37 +334,43 @@ def _valid_rows(a, counts: list[int]) -> np.ndarray | None:
     return np.concatenate([a[d, :c] for d, c in enumerate(counts)])
 
 
+@functools.partial(jax.jit, static_argnames=("config", "photons"))
+def _packed(buf, scene: SpectralScene, config: SpectralConfig, photons: int) -> dict:
+    """A record buffer [devices, capacity, ...] as PhotonRecords' fields: each device's valid rows
+    packed first (devices in order; rows past the total count are padding), per-band powers per
+    launched photon, floats in float64. One program per buffer shape: packing and weighing on the
+    host, then converting each field, cost ~0.2 s a buffer of 300 000 rows."""
+    ndev, cap = buf.w.shape[:2]
+    row = jnp.arange(cap)
+    start = jnp.cumsum(buf.count) - buf.count
+    target = jnp.where(row[None, :] < buf.count[:, None], start[:, None] + row[None, :], ndev * cap)
+    source = jnp.zeros(ndev * cap, jnp.int32).at[target.reshape(-1)].set(jnp.arange(ndev * cap, dtype=jnp.int32), mode="drop")
+    take = lambda a: None if a is None else jnp.take(jnp.reshape(a, (ndev * cap, *a.shape[2:])), source, axis=0)  # noqa: E731
+    as64 = lambda a: None if a is None else (a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a)  # noqa: E731
+    rows = {k: take(getattr(buf, k)) for k in buf._fields if k not in ("count", "overflow")}
+    act = jnp.asarray(config.active)
+    power = jnp.zeros((ndev * cap, config.num_bands))
+    band = rows["band"].astype(jnp.int64)
+    if config.shared:
+        w = band_weights(*(as64(rows[k]) for k in ("w", "spectrum", "path", "hits")), rows["band"],
+                         medium_arrays(scene, config, jnp.float64))
+        power = power.at[:, act].set(w / photons)
+        band = act[band]
+    else:
+        power = power.at[jnp.arange(ndev * cap), band].set(as64(rows["w"]) / photons)
+    out = {k: as64(rows[k]) for k in ("position", "direction", "path", "hits", "converted", "photon", "emission", *REPLAY_FIELDS)}
+    if out["exc0"] is not None:  # shared paths: from the active slots to the band grid
+        out["exc0"] = jnp.zeros((ndev * cap, config.num_bands)).at[:, act].set(out["exc0"])
+    return dict(out, power=power, band=band)
+
+
 def _records(buf, scene: SpectralScene, config: SpectralConfig, photons: int) -> PhotonRecords | None:
     """Concatenate the devices' buffers (valid rows only) and evaluate each record's per-band power."""
     if buf is None:
         return None
-    counts = [int(c) for c in np.asarray(buf.count)]
-    take = functools.partial(_valid_rows, counts=counts)
-    count = sum(counts)
-    band = take(buf.band).astype(np.int64)
-    power = np.zeros((count, config.num_bands))
-    if config.shared:
-        # compiled once per buffer shape over every row (padding included), then the valid rows kept:
-        # evaluated eagerly on the valid rows, each new record count compiled ~30 programs (1.2 s a trace)
-        flat = lambda a: jnp.reshape(jnp.asarray(a, jnp.float64), (-1, *np.shape(a)[2:]))  # noqa: E731
-        w = _band_weights(flat(buf.w), flat(buf.spectrum), flat(buf.path), flat(buf.hits),
-                          jnp.reshape(jnp.asarray(buf.band), (-1,)), medium_arrays(scene, config, jnp.float64))
-        power[:, np.asarray(config.active)] = take(np.reshape(np.asarray(w), (*np.shape(buf.w), -1))) / photons
-        band = np.asarray(config.active)[band] if count else band
-    else:
-        power[np.arange(count), band] = take(buf.w).astype(np.float64) / photons
-    extra = {k: (lambda a: None if a is None else (a.astype(np.float64) if a.dtype.kind == "f" else a))(take(getattr(buf, k)))
-             for k in REPLAY_FIELDS}
-    if extra["exc0"] is not None:  # shared paths: from the active slots to the band grid
-        exc0 = np.zeros((count, config.num_bands))
-        exc0[:, np.asarray(config.active)] = extra["exc0"]
-        extra["exc0"] = exc0
-    return PhotonRecords(
-        position=take(buf.position).astype(np.float64), direction=take(buf.direction).astype(np.float64),
-        power=power, band=band, converted=take(buf.converted), photon=take(buf.photon),
-        count=count, overflow=int(np.sum(buf.overflow)), emission=take(buf.emission),
-        path=take(buf.path).astype(np.float64), hits=take(buf.hits).astype(np.float64), **extra,
-    )
+    count = int(np.sum(buf.count))
+    rows = {k: None if v is None else np.asarray(v)[:count] for k, v in _packed(buf, scene, config, photons).items()}
+    return PhotonRecords(count=count, overflow=int(np.sum(buf.overflow)), **rows)
 
 
 def _normalise(acc, photons: int, scene: SpectralScene, config: SpectralConfig, exhausted: bool) -> SpectralResult:

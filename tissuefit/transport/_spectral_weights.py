@@ -42,22 +42,28 @@ def band_weights(w, spectrum, path, hits, carrier, medium: _Medium, arrival=None
     the segment's end (the next-event estimate at the vertex scatters mus_k / mut_k of it). Without
     it, the weights of a segment that ends without an interaction (escape).
     """
-    log_r = jnp.zeros_like(spectrum)
-    log_rho = jnp.zeros_like(spectrum)
+    # The tables hold differences between bands (table[m, c, k] = t_k - t_c), so each row of exponents
+    # is one relative to slot 0 less its value at the carrier: [n, slots] broadcasts and one gather a
+    # row, where gathering table rows by carrier ([n, slots] per medium and table) cost ~5x more.
+    x_r = jnp.zeros_like(spectrum)
+    x_rho = jnp.zeros_like(spectrum)
     for m in range(path.shape[1]):
         n_m, l_m = hits[:, m : m + 1], path[:, m : m + 1]
-        attenuation = l_m * medium.dmut[m][carrier]
-        log_r = log_r + n_m * medium.log_ratio[m][carrier] - attenuation
-        log_rho = log_rho + n_m * medium.log_mut_ratio[m][carrier] - attenuation
+        attenuation = l_m * medium.dmut[m, 0][None, :]
+        x_r = x_r + n_m * medium.log_ratio[m, 0][None, :] - attenuation
+        x_rho = x_rho + n_m * medium.log_mut_ratio[m, 0][None, :] - attenuation
         if arrival is not None:
-            end = jnp.where((arrival == m)[:, None], medium.log_mut_ratio[m][carrier], 0.0)
-            log_r, log_rho = log_r + end, log_rho + end
-    # shift by the largest exponent so that the mixture's sum neither overflows nor underflows
-    shift = jnp.max(log_rho, axis=1, keepdims=True)
-    mixture = jnp.sum(spectrum * jnp.exp(log_rho - shift), axis=1, keepdims=True)
+            end = jnp.where((arrival == m)[:, None], medium.log_mut_ratio[m, 0][None, :], 0.0)
+            x_r, x_rho = x_r + end, x_rho + end
+    at_carrier = lambda x: jnp.take_along_axis(x, carrier[:, None], axis=1)  # noqa: E731
+    # log r_k = x_r,k - x_r,c and log rho_k = x_rho,k - x_rho,c; shifted by the largest log rho so that
+    # the mixture's sum neither overflows nor underflows
+    top = jnp.max(x_rho, axis=1, keepdims=True)
+    mixture = jnp.sum(spectrum * jnp.exp(x_rho - top), axis=1, keepdims=True)
     total = jnp.sum(spectrum, axis=1, keepdims=True)
     safe = jnp.where(mixture > 0, mixture, 1.0)
-    return jnp.where(mixture > 0, w[:, None] * spectrum * jnp.exp(log_r - shift) * total / safe, 0.0)
+    log_w = x_r - top + (at_carrier(x_rho) - at_carrier(x_r))
+    return jnp.where(mixture > 0, w[:, None] * spectrum * jnp.exp(log_w) * total / safe, 0.0)
 
 
 def _emission_shared(lanes: _Lanes, medium: _Medium, config: SpectralConfig, rows, xi_e):
