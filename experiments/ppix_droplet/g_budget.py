@@ -19,7 +19,8 @@ Poisson + Gaussian read noise 2 counts), without shifts or a dead band; the free
 least-squares gain, as in the fit.
 
     .venv/bin/python experiments/ppix_droplet/g_budget.py --size 128 --photons 200000 --renders 3
-    (--paths: the render's camera paths per pixel; --binning: the fit's pixel binning)
+    (--paths: the render's camera paths per pixel; --binning: the fit's pixel binning; --light-roulette:
+    the lights' roulette threshold, 1e-4 for the renders before LIGHT_ROULETTE)
 
 Writes experiments/ppix_droplet/results_g_budget_<size>.json (one entry per setting, appended).
 """
@@ -50,6 +51,7 @@ from tissuefit.fit import FitConfig, Measurement  # noqa: E402
 from tissuefit.fit._fit import _layout  # noqa: E402
 from tissuefit.fit._model import RenderModel  # noqa: E402
 from tissuefit.fit._solver import Problem, _start_scale  # noqa: E402
+from tissuefit.transport import _image  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -63,7 +65,11 @@ def main(argv=None) -> None:
     ap.add_argument("--measured-photons", type=int, default=None, help="default 4 x --photons")
     ap.add_argument("--counts", type=float, default=4000.0)
     ap.add_argument("--free", default="mua,a,g,c_ppix")
+    ap.add_argument("--light-roulette", type=float, default=None,
+                    help="the lights' roulette threshold of the fit's renders (default: the render's, LIGHT_ROULETTE)")
     args = ap.parse_args(argv)
+    if args.light_roulette is not None:
+        _image.LIGHT_ROULETTE = args.light_roulette
     bands = tf.BandGrid([400.0 + 16.0 * k for k in range(21)], 16.0)
     endo = rd.Endoscope(beta_deg=0.0, distance=1.0, fov_deg=25.0, width=args.size, height=args.size, cone_deg=3.0,
                         light_radius=0.01, separation=0.2)
@@ -115,6 +121,7 @@ def main(argv=None) -> None:
     meas = dict(zip(names, np.sqrt(np.diag(cov_meas)).tolist()))
     per_minute = {name: v * math.sqrt(t_one / 60.0) for name, v in sim.items()}
     summary = {"size": args.size, "photons": args.photons, "paths": args.paths, "binning": args.binning,
+               "light_roulette": _image.LIGHT_ROULETTE,
                "batches": args.batches, "free": args.free, "measured_photons": measured_photons,
                "measurement_seconds": t_measure, "seconds_one_render_warm": t_one,
                "averaged_hessian_eigenvalues": np.linalg.eigvalsh(h).tolist(),
