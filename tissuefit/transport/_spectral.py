@@ -338,13 +338,14 @@ def _valid_rows(a, counts: list[int]) -> np.ndarray | None:
 def _packed(buf, scene: SpectralScene, config: SpectralConfig, photons: int) -> dict:
     """A record buffer [devices, capacity, ...] as PhotonRecords' fields: each device's valid rows
     packed first (devices in order; rows past the total count are padding), per-band powers per
-    launched photon, floats in float64. One program per buffer shape: packing and weighing on the
-    host, then converting each field, cost ~0.2 s a buffer of 300 000 rows."""
+    launched photon, floats in float64. One program per buffer shape (a program per record count, as
+    eager indexing compiled, cost 1.2 s a trace); on the host the same took 0.125 s a buffer of 300 000
+    rows, here 0.097 s (experiments/render/RESULTS.md)."""
     ndev, cap = buf.w.shape[:2]
     row = jnp.arange(cap)
     start = jnp.cumsum(buf.count) - buf.count
     target = jnp.where(row[None, :] < buf.count[:, None], start[:, None] + row[None, :], ndev * cap)
-    source = jnp.zeros(ndev * cap, jnp.int32).at[target.reshape(-1)].set(jnp.arange(ndev * cap, dtype=jnp.int32), mode="drop")
+    source = jnp.zeros(ndev * cap, jnp.int64).at[target.reshape(-1)].set(jnp.arange(ndev * cap, dtype=jnp.int64), mode="drop")
     take = lambda a: None if a is None else jnp.take(jnp.reshape(a, (ndev * cap, *a.shape[2:])), source, axis=0)  # noqa: E731
     as64 = lambda a: None if a is None else (a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a)  # noqa: E731
     rows = {k: take(getattr(buf, k)) for k in buf._fields if k not in ("count", "overflow")}
