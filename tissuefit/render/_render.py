@@ -201,7 +201,10 @@ def render(
     - `illumination`: default the endoscope's cone lights; `Floodlight(radius)` for a wide beam.
     - `options`: `RenderOptions` (estimator and its settings); `trace_options`, `spectral`,
       `chunks`, `progress` (a callable `progress(photons_done)`): passed to the tracer
-      (`spectral` default: automatic mode; conversion_boost 10 for the photon map's march).
+      (`spectral` default: automatic mode; conversion_boost 10 for the photon map's march). With
+      fluorescence from the camera the lights' photons play roulette from 0.003 of their launch
+      weight and the camera's paths from their own threshold, each unless `trace_options`' is higher
+      (`tissuefit.transport._image`: `LIGHT_ROULETTE`, `PATH_ROULETTE`).
     - photon-map estimator only: `keep_records` keeps the records, maps and shading in
       `RenderResult.maps`; `path_statistics` makes the records carry what path replay needs
       (`tissuefit.replay.RenderReplay`).
