@@ -192,9 +192,9 @@ class _Medium(NamedTuple):
     conv: Array | None  # [media * bands, bands]
     psum: Array | None  # [media * bands]: total conversion probability
     q: Array | None  # shared: [media, 2] conversion sampling probability (not converted, converted)
-    log_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mus_k / mus_c)
-    log_mut_ratio: Array | None  # shared: [media, slots (carrier), slots]: log(mut_k / mut_c)
-    dmut: Array | None  # shared: [media, slots (carrier), slots]: mut_k - mut_c [1/cm]
+    log_ratio: Array | None  # shared: [media, slots]: log(mus_k / mus_0), against the first active band
+    log_mut_ratio: Array | None  # shared: [media, slots]: log(mut_k / mut_0)
+    dmut: Array | None  # shared: [media, slots]: mut_k - mut_0 [1/cm]
     solid_angle: Array | None = None  # image: [pixels] the camera pixels' solid angles [sr]
     dprops: tuple | None = None  # image tangents: (dmua, dmus, dg) [K, media * bands], dconv [K, media * bands, bands]
     fluence: Array | None = None  # paths from the camera: [voxels, (1 + K) * batches * excitation bands] (`CameraPaths`)
@@ -240,14 +240,14 @@ def medium_arrays(scene, config: SpectralConfig, dtype, tangents=()) -> _Medium:
     if config.shared:
         act = jnp.asarray(config.active)
         mua_a, mus_a = mua[:, act], mus[:, act]
-        both = (mus_a[:, None, :] > 0) & (mus_a[:, :, None] > 0)
-        log_ratio = jnp.where(both, jnp.log(jnp.where(both, mus_a[:, None, :], 1.0) / jnp.where(both, mus_a[:, :, None], 1.0)), 0.0)
+        # against the first active band: a ratio between any two bands is a difference of two rows
+        # (`band_weights`); shared paths need mus, mut > 0 in all bands of a medium or in none
+        both = (mus_a > 0) & (mus_a[:, :1] > 0)
+        log_ratio = jnp.where(both, jnp.log(jnp.where(both, mus_a, 1.0) / jnp.where(both, mus_a[:, :1], 1.0)), 0.0)
         mut_a = mua_a + mus_a
-        dmut = mut_a[:, None, :] - mut_a[:, :, None]
-        turbid = (mut_a[:, None, :] > 0) & (mut_a[:, :, None] > 0)
-        log_mut_ratio = jnp.where(
-            turbid, jnp.log(jnp.where(turbid, mut_a[:, None, :], 1.0) / jnp.where(turbid, mut_a[:, :, None], 1.0)), 0.0
-        )
+        dmut = mut_a - mut_a[:, :1]
+        turbid = (mut_a > 0) & (mut_a[:, :1] > 0)
+        log_mut_ratio = jnp.where(turbid, jnp.log(jnp.where(turbid, mut_a, 1.0) / jnp.where(turbid, mut_a[:, :1], 1.0)), 0.0)
         log_ratio, log_mut_ratio, dmut = (a.astype(dtype) for a in (log_ratio, log_mut_ratio, dmut))
         if config.fluorescent:
             p = psum[:, act]

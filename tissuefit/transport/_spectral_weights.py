@@ -42,19 +42,19 @@ def band_weights(w, spectrum, path, hits, carrier, medium: _Medium, arrival=None
     the segment's end (the next-event estimate at the vertex scatters mus_k / mut_k of it). Without
     it, the weights of a segment that ends without an interaction (escape).
     """
-    # The tables hold differences between bands (table[m, c, k] = t_k - t_c), so each row of exponents
-    # is one relative to slot 0 less its value at the carrier: [n, slots] broadcasts and one gather a
-    # row. Gathering table rows by carrier ([n, slots] per medium and table) took 2.2x the time (300 000
-    # records, float64; experiments/render/RESULTS.md).
+    # The tables are against the first active band (`_Medium`), so each row of exponents is one
+    # against slot 0 less its value at the carrier: [n, slots] broadcasts and one gather a row.
+    # Gathering [slots, slots] tables' rows by carrier ([n, slots] per medium and table) took 2.2x the
+    # time (300 000 records, float64; experiments/render/RESULTS.md).
     x_r = jnp.zeros_like(spectrum)
     x_rho = jnp.zeros_like(spectrum)
     for m in range(path.shape[1]):
         n_m, l_m = hits[:, m : m + 1], path[:, m : m + 1]
-        attenuation = l_m * medium.dmut[m, 0][None, :]
-        x_r = x_r + n_m * medium.log_ratio[m, 0][None, :] - attenuation
-        x_rho = x_rho + n_m * medium.log_mut_ratio[m, 0][None, :] - attenuation
+        attenuation = l_m * medium.dmut[m][None, :]
+        x_r = x_r + n_m * medium.log_ratio[m][None, :] - attenuation
+        x_rho = x_rho + n_m * medium.log_mut_ratio[m][None, :] - attenuation
         if arrival is not None:
-            end = jnp.where((arrival == m)[:, None], medium.log_mut_ratio[m, 0][None, :], 0.0)
+            end = jnp.where((arrival == m)[:, None], medium.log_mut_ratio[m][None, :], 0.0)
             x_r, x_rho = x_r + end, x_rho + end
     at_carrier = lambda x: jnp.take_along_axis(x, carrier[:, None], axis=1)  # noqa: E731
     # log r_k = x_r,k - x_r,c and log rho_k = x_rho,k - x_rho,c; shifted by the largest log rho so that
