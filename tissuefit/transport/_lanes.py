@@ -284,6 +284,17 @@ def _expand(mask: Array, like: Array) -> Array:
     return mask.reshape(mask.shape + (1,) * (like.ndim - 1))
 
 
+def materialised(fn, mask: Array, *args):
+    """fn(*args) inside a conditional, zeros of its shapes where no lane is in `mask` (nothing to score).
+
+    The conditional is there for XLA's CPU fusion: without it, the per-lane work that builds `args`
+    (a camera connection: tens of operations per lane) is fused into fn's [lanes, columns] outputs
+    and redone for every column, (1 + K) x bands times with K tangents. A conditional's operands are
+    computed once (experiments/render/RESULTS.md, 2026-12-07 afternoon)."""
+    shapes = jax.eval_shape(fn, *args)
+    return jax.lax.cond(jnp.any(mask), fn, lambda *_: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), *args)
+
+
 def free_path(lanes, medium, mut, xi_step):
     """MCML's hop test: a free path s [cm] (or the rest of the carried one, `sleft`) against the
     current layer's faces. Returns (turbid, safe_mut, s, face, db): db is the distance to the

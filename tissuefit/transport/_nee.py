@@ -65,7 +65,7 @@ from ..scene import AbstractSource
 from . import _adjoint, _physics as phys, _rng
 from ._adjoint import FluenceGrid
 from ._camera import Connection, PinholeCamera, connect, hg_intensity
-from ._lanes import ALIVE, IDLE, KILLED, _expand
+from ._lanes import ALIVE, IDLE, KILLED, _expand, materialised
 from ._lights import AreaLights
 from ._records import segment_log_ratio
 from ._spectral_state import SpectralConfig, _Sites
@@ -260,23 +260,25 @@ def _deposit(acc, lanes, medium, config: SpectralConfig, vertex: _Vertex, conn: 
     cam = config.image.camera
     k = config.tangents
     props = _active_props(medium.mua, medium.mus, medium.g, medium.conv if fluorescence else None, config)
-    no_change = jnp.zeros_like(vertex.w0)
-
-    def values(p, change):
-        return _values(p, change, vertex, config)
-
+    tangents = change = None
     if k:
         (dmua, dmus, dg), dconv = medium.dprops
         tangents = jax.vmap(lambda a, b, c, d: _active_props(a, b, c, d if fluorescence else None, config))(
             dmua, dmus, dg, dconv)
         change = jnp.zeros((k,) + vertex.w0.shape, vertex.w0.dtype) if lanes.dlog_s is None else jnp.moveaxis(lanes.dlog_s, -1, 0)
+
+    def rows(vertex, props, tangents, change):
+        # the image rows [lanes, (1 + K) slots] (values, then the derivatives), emitted, its derivatives
+        no_change = jnp.zeros_like(vertex.w0)
+        values = lambda p, c: _values(p, c, vertex, config)  # noqa: E731
+        if not k:
+            value, emitted = values(props, no_change)
+            return value, emitted, None
         (value, emitted), (dvalue, demitted) = jax.vmap(
             lambda t, c: jax.jvp(values, (props, no_change), (t, c)), out_axes=(None, 0))(tangents, change)
-        row_values = jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1)
-    else:
-        value, emitted = values(props, no_change)
-        demitted = None
-        row_values = value
+        return jnp.concatenate([value, jnp.moveaxis(dvalue, 0, 1).reshape(value.shape[0], -1)], axis=1), emitted, demitted
+
+    row_values, emitted, demitted = materialised(rows, mask, vertex, props, tangents, change)
     batch = (lanes.origin % cam.batches).astype(jnp.int32)
     row = jnp.where(mask & conn.valid, batch * cam.pixels + conn.pixel, cam.batches * cam.pixels)
     return acc._replace(image=acc.image.at[row].add(row_values.astype(jnp.float64), mode="drop")), emitted, demitted
