@@ -151,7 +151,12 @@ class FluenceGrid(eqx.Module):
         the excitation bands' over the layers the depth reaches; no deeper than the tissue), with
         the layer faces among them. Across: the footprint widened by 4/mu_eff of the emission bands
         (paths from the camera rarely wander farther), at most `cells` cells a side, fewer where the
-        grids of all batches would take more than `memory_mb` (float64)."""
+        grids of all batches would take more than `memory_mb` (float64).
+
+        The lengths these rules start from are first snapped to a ladder of steps of 2^(1/4) (finer
+        cells, deeper and wider boxes: `_snap`), and the cells' faces across lie on a lattice through
+        x = y = 0, so that tissues a few per cent apart, the re-traces of a fit, get the same grid:
+        the grid is static, and a new one recompiles the trace (and moves the cells' bias)."""
         mua, mus, g = (np.asarray(a, np.float64) for a in tissue.properties())
         layers = tissue.num_layers
         geo = tissue.geometry
@@ -166,11 +171,11 @@ class FluenceGrid(eqx.Module):
         media = list(range(layers))
         ex = mu_eff(list(bands), media)
         mut_top = (mua + mus)[0, list(bands)]
-        mfp = 1.0 / max(float(mut_top.max()), 1e-3)
+        mfp = _snap(1.0 / max(float(mut_top.max()), 1e-3), up=False)
         positive = ex[ex > 0]
-        deep = 10.0 / float(positive.min()) if positive.size else 1.0
+        deep = _snap(10.0 / float(positive.min()), up=True) if positive.size else 1.0
         depth = min(deep, float(z0[-1] + thickness[-1]) if np.isfinite(thickness[-1]) else deep, 10.0)
-        coarse = 0.25 / max(float(positive.max()) if positive.size else 1.0, 1e-3)
+        coarse = _snap(0.25 / max(float(positive.max()) if positive.size else 1.0, 1e-3), up=False)
         edges = [0.0]
         h = min(0.1 * mfp, coarse)
         while edges[-1] < depth:
@@ -181,7 +186,7 @@ class FluenceGrid(eqx.Module):
         edges = edges[np.concatenate([[True], np.diff(edges) > 1e-9])]
         em = mu_eff(list(emission_bands) or list(bands), [0])
         em_pos = em[em > 0]
-        margin = min(4.0 / float(em_pos.min()) if em_pos.size else 0.5, 1.0)
+        margin = min(_snap(4.0 / float(em_pos.min()), up=True) if em_pos.size else 0.5, 1.0)
         x0, x1, y0, y1 = (float(v) for v in footprint)
         x0, x1, y0, y1 = x0 - margin, x1 + margin, y0 - margin, y1 + margin
         side = max(x1 - x0, y1 - y0)
@@ -189,9 +194,17 @@ class FluenceGrid(eqx.Module):
         fit = int(math.sqrt(memory_mb * 2**20 / per_cell))
         n = max(8, min(cells, fit))
         h_xy = max(side / n, coarse)
+        # cell faces on a lattice through x = y = 0, where a scene's beam or lights' axis usually is
+        x0, y0 = math.floor(x0 / h_xy) * h_xy, math.floor(y0 / h_xy) * h_xy
         nx, ny = max(1, math.ceil((x1 - x0) / h_xy)), max(1, math.ceil((y1 - y0) / h_xy))
         return cls(x0=x0, y0=y0, dx=h_xy, dy=h_xy, nx=nx, ny=ny, z_edges=tuple(float(z) for z in edges), bands=bands,
                    batches=batches)
+
+
+def _snap(length: float, *, up: bool) -> float:
+    """`length` [cm] moved to the ladder 2^(k/4) cm, up or down (`FluenceGrid.covering`)."""
+    rung = 4.0 * math.log2(length)
+    return 2.0 ** ((math.ceil(rung) if up else math.floor(rung)) / 4.0)
 
 
 class CameraPaths(AbstractSource):
