@@ -83,7 +83,9 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         s, t, _ = model.sample(x, key=jax.random.fold_in(jax.random.key(5), k), photons=args.photons)
         if k:
-            sims.append(np.asarray(s)), tans.append(np.asarray(t)), seconds.append(time.perf_counter() - t0)
+            sims.append(np.asarray(s))
+            tans.append(np.asarray(t))
+            seconds.append(time.perf_counter() - t0)
     lit = np.mean([s.mean(0) for s in sims], 0) > 1e-3 * np.max(sims[0].mean(0))
     split = 1.0 / (1.0 - droplet.TRUTH["g"]) * dgdx  # d log mus / dx_g at fixed a, in log a's column
     columns = {**{n: [t[:, i] for t in tans] for i, n in enumerate(NAMES)},
